@@ -1,0 +1,185 @@
+"""Task files: schema of ``mpd/tasks/data/*.toml`` (or any user file with the same layout)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A sphere (centre, radius) or a box (centre, full side lengths ``size``, optional rotation)."""
+
+    type: Literal["sphere", "box"]
+    centre: list[float]
+    radius: float | None = None
+    size: list[float] | None = None
+    orientation_wxyz: tuple[float, float, float, float] | None = None
+    name: str = ""
+
+    def validate(self) -> None:
+        if self.type == "sphere":
+            if self.radius is None or self.radius <= 0:
+                raise ValueError("a sphere needs a positive radius")
+            if self.size is not None or self.orientation_wxyz is not None:
+                raise ValueError("a sphere takes no size or orientation_wxyz")
+        else:
+            if self.size is None or len(self.size) != len(self.centre) or min(self.size) <= 0:
+                raise ValueError(f"a box needs {len(self.centre)} positive side lengths in size")
+            if self.radius is not None:
+                raise ValueError("a box takes no radius")
+            if self.orientation_wxyz is not None:
+                if len(self.centre) != 3:
+                    raise ValueError("orientation_wxyz is for 3-D boxes")
+                if abs(np.linalg.norm(self.orientation_wxyz) - 1) > 1e-6:
+                    raise ValueError(f"orientation_wxyz {list(self.orientation_wxyz)} is not a unit quaternion")
+
+
+@dataclass(frozen=True)
+class EnvironmentSpec:
+    dim: Literal[2, 3]
+    workspace: tuple[list[float], list[float]]
+    obstacles: list[ObjectSpec]
+    extra_objects: list[ObjectSpec] = field(default_factory=list)
+    sdf_cell_size: float = 0.005
+    box_corner_radius: float = 0.0
+
+    def validate(self) -> None:
+        lo, hi = self.workspace
+        if len(lo) != self.dim or len(hi) != self.dim or any(a >= b for a, b in zip(lo, hi)):
+            raise ValueError(f"workspace must be [[{self.dim} lows], [{self.dim} highs]] with low < high")
+        for key in ("obstacles", "extra_objects"):
+            for i, o in enumerate(getattr(self, key)):
+                if len(o.centre) != self.dim:
+                    raise ValueError(f"{key}[{i}].centre has {len(o.centre)} coordinates, the environment is {self.dim}-D")
+        if self.sdf_cell_size <= 0:
+            raise ValueError("sdf_cell_size must be positive")
+
+
+@dataclass(frozen=True)
+class RobotRef:
+    name: str
+
+
+@dataclass(frozen=True)
+class PoseRegionSpec:
+    """End-effector poses: x, y, z and Euler angles (scipy 'xyz', degrees) uniform in one of their intervals."""
+
+    name: str
+    x: list[tuple[float, float]]
+    y: list[tuple[float, float]]
+    z: list[tuple[float, float]]
+    rot_x_deg: list[tuple[float, float]]
+    rot_y_deg: list[tuple[float, float]]
+    rot_z_deg: list[tuple[float, float]]
+    rotation_base: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+
+@dataclass(frozen=True)
+class ContextSpec:
+    kind: Literal["goal_joint_position", "goal_ee_pose"]
+    min_start_goal_distance: float = 0.0
+    pose_regions: list[PoseRegionSpec] = field(default_factory=list)
+    region_pair_probability: float = 0.5
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    duration: float
+    n_control_points: int
+    n_points: int = 128
+    bspline_degree: int = 5
+    n_waypoints: int | None = None  # waypoint ablation; defaults to n_control_points (the paper's choice)
+
+    def validate(self) -> None:
+        if self.duration <= 0:
+            raise ValueError("trajectory.duration must be positive")
+        if self.n_control_points < self.bspline_degree + 1 or self.n_control_points < 7:
+            raise ValueError(f"trajectory.n_control_points must be at least max(degree + 1, 7), got {self.n_control_points}")
+        if self.n_points < 2:
+            raise ValueError("trajectory.n_points must be at least 2")
+
+
+@dataclass(frozen=True)
+class CollisionSpec:
+    cost_margin: float
+    clearance: float = 0.0
+    validity_margin: float = 0.0
+    self_collision: bool = False
+
+
+@dataclass(frozen=True)
+class CostWeights:
+    collision: float = 0.0
+    self_collision: float = 0.0
+    joint_limits: float = 0.0
+    ee_pose: float = 0.0
+    velocity: float = 0.0
+    acceleration: float = 0.0
+
+
+@dataclass(frozen=True)
+class CostsSpec:
+    weights: CostWeights
+    paper_weights: CostWeights | None = None
+
+
+@dataclass(frozen=True)
+class InferenceSpec:
+    """Task-specific overrides of the planner presets (see mpd.planners.presets)."""
+
+    guide_fraction: float = 0.3
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    unet_dim: int = 32
+    unet_dim_mults: list[int] = field(default_factory=lambda: [1, 2, 4])
+    context_dim: int = 32
+    context_layers: int = 1
+    time_emb_dim: int = 32
+
+
+@dataclass(frozen=True)
+class TrainingSpec:
+    batch_size: int
+    steps: int
+    lr: float = 3e-4
+    weight_decay: float = 0.01
+    grad_clip_norm: float = 1.0
+    ema_decay: float = 0.995
+    ema_start: int = 1000
+    ema_every: int = 10
+    val_every: int = 1000
+    checkpoint_every: int = 5000
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    planner_time_limit: float = 10.0
+    paper_n_contexts: int = 10000
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    schema_version: int
+    name: str
+    environment: EnvironmentSpec
+    robot: RobotRef
+    context: ContextSpec
+    trajectory: TrajectorySpec
+    collision: CollisionSpec
+    costs: CostsSpec
+    description: str = ""
+    inference: InferenceSpec = field(default_factory=InferenceSpec)
+    model: ModelSpec = field(default_factory=ModelSpec)
+    training: dict[str, TrainingSpec] = field(default_factory=dict)
+    data: DataSpec = field(default_factory=DataSpec)
+
+    def validate(self) -> None:
+        if self.schema_version != 1:
+            raise ValueError(f"schema_version {self.schema_version} is not supported (this mpd reads 1)")
+        if self.context.kind == "goal_ee_pose" and self.costs.weights.ee_pose <= 0:
+            raise ValueError("costs.weights.ee_pose must be positive for an end-effector-goal task")
