@@ -1,0 +1,65 @@
+"""The ``mpd`` command. Each verb lives next to the code it drives (``mpd/<package>/commands.py``)."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from mpd import __version__
+from mpd.schema import ConfigError
+
+# (module, attribute) of each click command or group; imported lazily so that `mpd --help` stays fast and a
+# verb's heavy imports (torch, ompl, pybullet, rerun) are paid only when it runs.
+COMMANDS = {
+    "tasks": ("mpd.tasks.commands", "tasks"),
+    "data": ("mpd.data.commands", "data"),
+    "train": ("mpd.models.commands", "train"),
+    "models": ("mpd.models.commands", "models"),
+    "plan": ("mpd.planners.commands", "plan"),
+    "run": ("mpd.experiments.commands", "run"),
+    "runs": ("mpd.experiments.commands", "runs"),
+    "report": ("mpd.viz.commands", "report"),
+    "view": ("mpd.viz.commands", "view"),
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in COMMANDS:
+            return None
+        module, attr = COMMANDS[name]
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as e:  # a verb whose package is not built yet
+            return click.Command(name, help=f"(unavailable: {e})", callback=lambda: sys.exit(f"mpd {name}: unavailable: {e}"))
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="mpd")
+def cli() -> None:
+    """Motion Planning Diffusion, reproducible: tasks, datasets, models, planners, experiments, reports."""
+
+
+def main() -> None:
+    try:
+        cli.main(standalone_mode=False)
+    except ConfigError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)
+    except click.exceptions.Exit as e:
+        sys.exit(e.exit_code)
+
+
+if __name__ == "__main__":
+    main()
