@@ -1,0 +1,99 @@
+"""Task runner. Every session shares one virtual environment (``.nox/mpd``), created with the standard library's
+``venv`` and pip (uv would ignore the local CPU wheel of torch and download several GB of CUDA builds), and
+re-installed only when ``pyproject.toml`` changes: a second ``nox -s demo`` starts in seconds.
+
+    nox -s tests                  unit, property and end-to-end tests (slow ones: nox -s tests -- -m slow)
+    nox -s lint                   ruff
+    nox -s demo                   the quick experiment end to end: dataset, training, every method, recording, report
+    nox -s experiments -- SPEC    run an experiment spec (benchmarks/specs/NAME.toml or a path)
+    nox -s report -- RUN|SPEC     regenerate a run's figures and tables from its results table
+    nox -s view -- RUN [--web]    open the Rerun viewer on a run's recordings
+    nox -s benchmarks             pytest-benchmark suites, JSON under .benchmarks/
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+from pathlib import Path
+
+import nox
+
+ROOT = Path(__file__).parent
+VENV = ROOT / ".nox" / "mpd"
+nox.options.sessions = ["tests"]
+
+
+def _venv(session: nox.Session, extras: str = "dev") -> Path:
+    """Create/refresh the shared environment; returns its bin directory."""
+    bin_dir = VENV / ("Scripts" if sys.platform == "win32" else "bin")
+    python = bin_dir / "python"
+    stamp = VENV / ".mpd-stamp"
+    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + extras.encode()).hexdigest()
+    if not python.exists():
+        session.run(sys.executable, "-m", "venv", str(VENV), external=True)
+    if not stamp.exists() or stamp.read_text() != want:
+        session.run(str(python), "-m", "pip", "install", "-q", "--upgrade", "pip", external=True)
+        session.run(str(python), "-m", "pip", "install", "-q", "-e", f".[{extras}]", external=True)
+        stamp.write_text(want)
+    session.env["PATH"] = f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"
+    session.env["VIRTUAL_ENV"] = str(VENV)
+    return bin_dir
+
+
+@nox.session(venv_backend="none")
+def tests(session: nox.Session) -> None:
+    """Run the test suite (fast by default; `-- -m slow` for the slow ones)."""
+    b = _venv(session)
+    session.run(str(b / "python"), "-m", "pytest", *(session.posargs or ["-q"]), external=True)
+
+
+@nox.session(venv_backend="none")
+def lint(session: nox.Session) -> None:
+    b = _venv(session)
+    session.run(str(b / "ruff"), "check", "mpd", "tests", "benchmarks", "noxfile.py", external=True)
+
+
+@nox.session(venv_backend="none")
+def demo(session: nox.Session) -> None:
+    """The embedded default: the `quick` spec end to end, then where to find the report and the recording."""
+    b = _venv(session)
+    session.run(str(b / "mpd"), "run", "quick", "--report", *session.posargs, external=True)
+
+
+@nox.session(venv_backend="none")
+def experiments(session: nox.Session) -> None:
+    """Run an experiment spec: nox -s experiments -- SPEC [mpd run options]."""
+    if not session.posargs:
+        session.error("usage: nox -s experiments -- SPEC [--only KEY=VALUE ...] [--executor ray] [--workers N]")
+    b = _venv(session, "dev,ray")
+    session.run(str(b / "mpd"), "run", *session.posargs, external=True)
+
+
+@nox.session(venv_backend="none")
+def report(session: nox.Session) -> None:
+    """Regenerate figures and tables of a run (or the latest run of a spec) from its results table."""
+    if not session.posargs:
+        session.error("usage: nox -s report -- RUN_OR_SPEC")
+    b = _venv(session)
+    session.run(str(b / "mpd"), "report", *session.posargs, external=True)
+
+
+@nox.session(venv_backend="none")
+def view(session: nox.Session) -> None:
+    """Open the Rerun viewer on a run's recordings (`--web` serves the web viewer on localhost)."""
+    b = _venv(session)
+    session.run(str(b / "mpd"), "view", *(session.posargs or ["latest"]), external=True)
+
+
+@nox.session(venv_backend="none")
+def benchmarks(session: nox.Session) -> None:
+    """pytest-benchmark suites; results as JSON under .benchmarks/."""
+    b = _venv(session)
+    out = ROOT / ".benchmarks" / "latest.json"
+    out.parent.mkdir(exist_ok=True)
+    session.run(
+        str(b / "python"), "-m", "pytest", "benchmarks", "-m", "benchmark", "--benchmark-only",
+        "--benchmark-enable", f"--benchmark-json={out}", "-p", "no:cacheprovider", *session.posargs, external=True,
+    )
