@@ -144,3 +144,8 @@ class LinearTrajectory:
     def fit(self, paths: np.ndarray) -> np.ndarray:
         """Parameters W (N, n_params, dof) that follow dense paths (N, n, dof) from start to end."""
         raise NotImplementedError
+
+    def param_phases(self) -> np.ndarray:
+        """The phase each parameter row is attached to (n_params,): rows placed on a straight line at these
+        phases give the straight-line trajectory (a linear function of s)."""
+        raise NotImplementedError

@@ -85,6 +85,11 @@ class BSplineTrajectory(LinearTrajectory):
     def settings(self) -> dict:
         return {**super().settings(), "degree": self.degree}
 
+    def param_phases(self) -> np.ndarray:
+        # Greville abscissae: a B-spline reproduces linear functions when control point i sits at xi_i
+        p = self.degree
+        return np.array([self.knots[i + 1 : i + p + 1].mean() for i in range(self.n_params)])
+
     def free_rows(self, w):
         # rows 3 .. n-4 (and the final configuration, once, with an end-effector goal)
         n = self.n_params

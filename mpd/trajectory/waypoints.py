@@ -54,6 +54,9 @@ class WaypointTrajectory(LinearTrajectory):
         if not ee_goal:
             self.a_goal[-1] = 1.0
 
+    def param_phases(self) -> np.ndarray:
+        return np.linspace(0.0, 1.0, self.n_params)
+
     def fit(self, paths: np.ndarray) -> np.ndarray:
         """Waypoints = the dense path read at the waypoint phases (linear interpolation along the path index)."""
         paths = np.asarray(paths, dtype=np.float64)

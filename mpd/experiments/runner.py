@@ -1,0 +1,299 @@
+"""The runner: spec -> cells -> (dataset, model) artifacts -> units (cell x context) -> results, recordings.
+
+A run lives in ``runs/<spec>-<spec hash>-<commit>`` (``$MPD_RUNS``): the same spec at the same commit reuses the
+folder, so a re-run skips finished cells and an interrupted run resumes where it stopped. ``--fresh`` starts over.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from mpd.experiments import artifacts
+from mpd.experiments.results import RowStore, read_results, write_json, write_parquet
+from mpd.experiments.spec import Cell, Spec
+from mpd.experiments.units import Unit, UnitResult, run_unit
+from mpd.paths import runs_dir
+from mpd.provenance import git_state, provenance
+from mpd.schema import stable_hash
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Plan:
+    """What a run will do: the cells, the artifacts they need, and the units still to compute."""
+
+    cells: list[Cell]
+    needs: list[artifacts.Need]
+    units_total: int
+    units_todo: int
+
+
+def run_id(spec: Spec) -> str:
+    commit, _ = git_state()
+    return f"{spec.name}-{spec.hash[:8]}-{commit[:8]}"
+
+
+def plan_seed(seed: int, context_index: int) -> int:
+    # the same (seed, context) gets the same stream in every cell, so methods are compared on paired noise
+    return int(seed) * 100_003 + int(context_index)
+
+
+class Runner:
+    def __init__(
+        self,
+        spec: Spec,
+        only: dict[str, list] | None = None,
+        executor: str = "local",
+        workers: int = 1,
+        address: str | None = None,
+        run_dir: Path | None = None,
+        fresh: bool = False,
+        device: str | None = None,
+        progress: bool = True,
+        mlflow: bool = False,
+    ):
+        if executor not in ("local", "ray"):
+            raise ValueError(f"unknown executor {executor!r} (local, ray)")
+        self.spec = spec
+        self.cells = spec.cells(only)
+        self.executor = executor
+        self.workers = max(1, int(workers))
+        self.address = address
+        self.run_dir = Path(run_dir) if run_dir else runs_dir() / run_id(spec)
+        self.fresh = fresh
+        self.progress = progress
+        self.mlflow = mlflow
+        from mpd.device import default_device
+
+        dev = device or (spec.data.device if spec.data.device != "auto" else None)
+        self.device = str(dev or default_device())
+
+    # ------------------------------------------------------------------------------------------------ planning
+    def n_contexts(self, task: str) -> int:
+        ts = self.spec.data.tasks[task]
+        return ts.n_contexts or self.spec.data.n_contexts
+
+    def plan(self) -> Plan:
+        store = RowStore(self.run_dir) if self.run_dir.exists() and not self.fresh else None
+        total = todo = 0
+        for cell in self.cells:
+            n = self.n_contexts(cell.p["task"])
+            total += n
+            todo += n - (len(store.done(cell.key)) if store else 0)
+        needs = artifacts.needs(self.spec, self.cells)
+        return Plan(self.cells, needs, total, todo)
+
+    def describe(self) -> str:
+        """The dry run: cells, what would be generated or trained, and an estimate of the work."""
+        p = self.plan()
+        lines = [f"spec {self.spec.name} ({self.spec.path}), hash {self.spec.hash}", f"run folder {self.run_dir}", ""]
+        lines.append(f"{len(p.cells)} cells:")
+        for c in p.cells:
+            lines.append(f"  {c.key}  {c.label()}")
+        lines.append("")
+        lines.append("artifacts:")
+        for n in p.needs:
+            lines.append(f"  {n.describe()}")
+        est = sum(n.estimate_s for n in p.needs if not n.exists)
+        lines.append("")
+        lines.append(
+            f"units (cell x context): {p.units_total} in all, {p.units_todo} to compute; "
+            f"artifacts to build: ~{est / 60:.0f} min of the estimate (rough, 2-core CPU)"
+        )
+        return "\n".join(lines)
+
+    # ------------------------------------------------------------------------------------------------ running
+    def run(self, on_result: Callable[[UnitResult], None] | None = None) -> Path:
+        if self.fresh and self.run_dir.exists():
+            import shutil
+
+            shutil.rmtree(self.run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        store = RowStore(self.run_dir)
+        manifest = self._manifest(status="resolving")
+        resolved = artifacts.resolve(self.spec, self.cells, progress=self.progress)
+        manifest["artifacts"] = {k: v.summary() for k, v in resolved.items()}
+        manifest["status"] = "running"
+        write_json(manifest, self.run_dir / "manifest.json")
+        units = list(self._units(resolved, store))
+        log.info("%d units to compute", len(units))
+        status = "failed"
+        try:
+            self._execute(units, store, on_result)
+            status = "completed"
+        except KeyboardInterrupt:
+            status = "interrupted"
+            raise
+        finally:
+            df = store.table()
+            if len(df):
+                write_parquet(df, self.run_dir / "results.parquet")
+            manifest.update(status=status, finished_at=time.time(), n_rows=int(len(df)))
+            write_json(manifest, self.run_dir / "manifest.json")
+        if self.mlflow:
+            from mpd.experiments.tracking import log_run_to_mlflow
+
+            log_run_to_mlflow(self.run_dir)
+        return self.run_dir
+
+    def _manifest(self, status: str) -> dict:
+        prev = {}
+        if (self.run_dir / "manifest.json").exists():
+            import json
+
+            prev = json.loads((self.run_dir / "manifest.json").read_text())
+        return {
+            "run_id": self.run_dir.name,
+            "spec_name": self.spec.name,
+            "spec_hash": self.spec.hash,
+            "spec_path": str(self.spec.path),
+            "spec": self.spec.raw,
+            "cells": [{"key": c.key, **c.p} for c in self.cells],
+            "executor": self.executor,
+            "workers": self.workers,
+            "device": self.device,
+            "provenance": provenance(),
+            "started_at": prev.get("started_at", time.time()),
+            "resumed_at": time.time() if prev else None,
+            "status": status,
+        }
+
+    def _units(self, resolved: dict, store: RowStore) -> Iterable[Unit]:
+        prov_base = provenance()
+        base = {
+            "run_id": self.run_dir.name, "spec_name": self.spec.name, "spec_hash": self.spec.hash,
+            "git_commit": prov_base["git_commit"], "git_dirty": prov_base["git_dirty"],
+            "mpd_version": prov_base["mpd_version"], "torch_version": prov_base["libraries"].get("torch"),
+            "libraries": ",".join(f"{k}={v}" for k, v in prov_base["libraries"].items()),
+        }
+        record_n = self.spec.data.record_contexts
+        for cell in self.cells:
+            p = cell.p
+            task_art = resolved[p["task"]]
+            contexts = task_art.contexts
+            done = store.done(cell.key)
+            model = task_art.model_for(p["method"], p["parametrization"] or "bspline")
+            prov = dict(base, task_hash=task_art.task_hash, dataset_id=task_art.dataset_id,
+                        dataset_hash=task_art.dataset_hash, model_id=model.identity if model else "",
+                        model_hash=model.sha256 if model else "")
+            for i in range(self.n_contexts(p["task"])):
+                if i in done:
+                    continue
+                yield Unit(
+                    cell.key, p, cell.planner_overrides(), i, contexts.row(i), plan_seed(p["seed"], i),
+                    str(model.path) if model else None, self.device, record=i < record_n, provenance=prov,
+                )
+
+    def _execute(self, units: list[Unit], store: RowStore, on_result) -> None:
+        bar = tqdm(total=len(units), desc=f"{self.spec.name}", unit="plan", disable=not self.progress, dynamic_ncols=True)
+
+        def done(res: UnitResult) -> None:
+            store.append(res.cell_key, res.row)
+            if res.history is not None:
+                save_history(self.run_dir, res)
+            if on_result is not None:
+                on_result(res)
+            bar.set_postfix_str(f"{res.row['task'][:12]}/{res.row['method']} ok={res.row['success']:.0f}", refresh=False)
+            bar.update()
+
+        try:
+            if self.executor == "ray":
+                self._execute_ray(units, done)
+            elif self.workers == 1:
+                for u in units:
+                    done(run_unit(u))
+            else:
+                self._execute_pool(units, done)
+        finally:
+            bar.close()
+
+    def _execute_pool(self, units: list[Unit], done) -> None:
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # fork after torch/OpenMP started threads can deadlock
+        with ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init) as pool:
+            pending = set()
+            it = iter(units)
+            for u in it:
+                pending.add(pool.submit(run_unit, u))
+                if len(pending) >= 2 * self.workers:
+                    break
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in finished:
+                    done(f.result())
+                    nxt = next(it, None)
+                    if nxt is not None:
+                        pending.add(pool.submit(run_unit, nxt))
+
+    def _execute_ray(self, units: list[Unit], done) -> None:
+        import ray
+
+        if not ray.is_initialized():
+            kw = {"address": self.address} if self.address else {"num_cpus": self.workers}
+            ray.init(include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False, **kw)
+        remote = ray.remote(num_cpus=1)(_ray_unit)
+        pending = [remote.remote(u) for u in units]
+        while pending:
+            finished, pending = ray.wait(pending, num_returns=1)
+            for f in finished:
+                done(ray.get(f))
+
+
+def _worker_init() -> None:
+    import torch
+
+    # one thread per worker: two workers x two threads on two cores is 5-10x slower (oversubscription)
+    torch.set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def _ray_unit(unit: Unit) -> UnitResult:
+    _worker_init()
+    return run_unit(unit)
+
+
+def save_history(run_dir: Path, res: UnitResult) -> Path:
+    """The recorded batch of one (cell, context): dense trajectories at every step, for recordings and figures."""
+    d = Path(run_dir) / "histories"
+    d.mkdir(exist_ok=True)
+    path = d / f"{res.cell_key}-ctx{res.row['context_index']}.npz"
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **res.history, row_key=np.array(stable_hash(res.row.get("cell_key"))))
+    os.replace(tmp, path)
+    return path
+
+
+def latest_run(name: str | None = None) -> Path:
+    """The most recently modified run folder (of a spec, when given)."""
+    runs = [p for p in runs_dir().iterdir() if (p / "manifest.json").exists()]
+    if name:
+        runs = [p for p in runs if p.name == name or p.name.startswith(f"{name}-")]
+    if not runs:
+        raise FileNotFoundError(f"no run found{' for ' + name if name else ''} in {runs_dir()}")
+    return max(runs, key=lambda p: (p / "manifest.json").stat().st_mtime)
+
+
+def resolve_run(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.is_dir() and (p / "manifest.json").exists():
+        return p
+    if name_or_path == "latest":
+        return latest_run()
+    cand = runs_dir() / name_or_path
+    if cand.is_dir():
+        return cand
+    return latest_run(name_or_path)
+
+
+__all__ = ["Plan", "Runner", "latest_run", "plan_seed", "read_results", "resolve_run", "run_id"]

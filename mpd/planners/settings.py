@@ -1,0 +1,110 @@
+"""Planner hyperparameters and the two named presets.
+
+``official`` (the default) follows the authors' inference configs, which produced the published results;
+``paper`` follows the paper's text (Algorithm 2, appendix B). Where they differ
+(``../shared/reference/README.md``, "Paper vs code" 1-3, 6, 17):
+
+| setting | official | paper |
+| --- | --- | --- |
+| guided DDIM steps | ceil(task guide_fraction x 15): 5 or 3 | the last i_cost = 3 |
+| DDIM eta | 0.5 (stochastic) | 0 (deterministic) |
+| quadratic schedule | duplicate 0 replaced by a random unused step each call, final 1->0 step done twice | 15 distinct steps |
+| guided update | eps~ = lambda eps - gamma clip(-grad C, -1, 1); the DDIM update re-applied to the iterate M times, each clipped to x_t +- delta | M gradient steps on the DDIM mean mu (lambda eps), clipped to mu +- delta |
+| cost gradient clipping | value clip to [-1, 1] | none |
+| cost forms and weights | task `[costs.weights]`, norms for velocity/acceleration | `[costs.paper_weights]`, squared norms |
+| "+Cost" baselines | 12 steps, lr 0.01, grad clip 1, delta 0.15 | 12 steps (= i_cost x M), lr = gamma, delta 0.15 |
+
+Every field can be overridden per task (``[inference]`` in the task file) and per run (a spec axis such as
+``planner.guide_lr``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+PRESETS = ("official", "paper")
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    preset: Literal["official", "paper"] = "official"
+    # -- diffusion sampling ----------------------------------------------------------------------------------
+    sampler: Literal["ddim", "ddpm"] = "ddim"
+    ddim_steps: int = 15
+    ddim_schedule: Literal["quadratic", "uniform"] = "quadratic"
+    ddim_variant: Literal["official", "paper"] = "official"
+    eta: float = 0.5
+    ddpm_variance_scale: float = 0.49  # alpha; the authors' (untuned) DDPM config scales the noise std by 0.7
+    # -- cost guidance (MPD) -----------------------------------------------------------------------------------
+    guide_fraction: float | None = 0.3  # guided steps = ceil(fraction x steps); None -> use n_guided_steps
+    n_guided_steps: int = 3  # i_cost, used when guide_fraction is None
+    n_inner_steps: int = 4  # M
+    prior_weight: float = 0.25  # lambda_prior
+    guide_lr: float = 1.0  # gamma
+    max_perturb: float = 0.15  # delta, in unit-normalized control-point space
+    grad_clip: float | None = 1.0  # element-wise value clip of the cost gradient (None: off)
+    guided_update: Literal["official", "paper"] = "official"
+    # DDPM guidance (the authors' "ddpm_not_tuned" config)
+    ddpm_guide_fraction: float = 0.2
+    ddpm_prior_weight: float = 0.95
+    ddpm_n_inner_steps: int = 2
+    ddpm_guide_lr: float = 0.01
+    # -- "+Cost" baselines: gradient steps after sampling ------------------------------------------------------
+    opt_steps: int = 12
+    opt_lr: float = 0.01
+    opt_max_perturb: float = 0.15
+    opt_grad_clip: float | None = 1.0
+    # -- costs ---------------------------------------------------------------------------------------------------
+    cost_preset: Literal["official", "paper"] = "official"
+    sdf_mode: Literal["nearest", "trilinear", "analytic"] = "nearest"
+    # -- GP prior (GPprior+Cost) ------------------------------------------------------------------------------------
+    gp_sigma: float = 0.3  # prior std of the free control points, unit-normalized space
+    gp_lengthscale: float = 0.25  # in phase units
+    # -- RRTConnect (+Cost) -------------------------------------------------------------------------------------------
+    rrt_time_limit: float = 10.0
+    # -- inverse kinematics for planners that need a goal configuration (GPprior+Cost, RRTConnect+Cost) ---------------
+    ik_restarts: int = 4
+
+    def guided_steps(self, n_steps: int) -> int:
+        """How many of the last denoising steps are cost-guided."""
+        if self.sampler == "ddpm":
+            return math.ceil(self.ddpm_guide_fraction * n_steps)
+        if self.guide_fraction is None:
+            return min(self.n_guided_steps, n_steps)
+        return math.ceil(round(self.guide_fraction * n_steps, 9))
+
+    def replace(self, **kw) -> PlannerSettings:
+        unknown = set(kw) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            allowed = ", ".join(f.name for f in dataclasses.fields(self))
+            raise ValueError(f"unknown planner setting(s) {', '.join(sorted(unknown))} (allowed: {allowed})")
+        return dataclasses.replace(self, **kw)
+
+
+PAPER_OVERRIDES = {
+    "preset": "paper",
+    "ddim_variant": "paper",
+    "eta": 0.0,
+    "guide_fraction": None,
+    "n_guided_steps": 3,
+    "grad_clip": None,
+    "guided_update": "paper",
+    "opt_lr": 1.0,
+    "opt_grad_clip": None,
+    "cost_preset": "paper",
+}
+
+
+def planner_settings(task, preset: str = "official", **overrides) -> PlannerSettings:
+    """Settings of a preset for a task (the task's ``[inference]`` applies to ``official``), then overrides."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown planner preset {preset!r} (known: {', '.join(PRESETS)})")
+    s = PlannerSettings()
+    if preset == "official":
+        s = s.replace(guide_fraction=task.spec.inference.guide_fraction, rrt_time_limit=task.spec.data.planner_time_limit)
+    else:
+        s = s.replace(**PAPER_OVERRIDES, rrt_time_limit=task.spec.data.planner_time_limit)
+    return s.replace(**overrides) if overrides else s
