@@ -1,0 +1,188 @@
+"""The artifact store as the runner sees it: for every task of a spec, its dataset, its evaluation contexts and the
+models its cells need, built only when missing (content-addressed by their inputs: a second run reuses them)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mpd.schema import file_sha256
+from mpd.tasks import Task, load_task
+
+# rough rates on a 2-core CPU, only for the dry run's estimate
+_PATHS_PER_S = {"RobotPointMass2D": 60.0, "RobotPlanar2Link": 20.0, "RobotPlanar4Link": 8.0, "RobotPanda": 2.0}
+_STEPS_PER_S = {2: 40.0, 3: 30.0, 4: 3.0}  # by U-Net depth: (1,2,4) small nets vs (1,2,4,8) Panda-sized
+
+
+@dataclass
+class Need:
+    kind: str  # dataset | model | contexts
+    task: str
+    name: str
+    exists: bool
+    detail: str = ""
+    estimate_s: float = 0.0
+
+    def describe(self) -> str:
+        state = "ready" if self.exists else f"to build ({self.detail}, ~{self.estimate_s / 60:.1f} min)"
+        return f"{self.kind:8s} {self.task}: {self.name}: {state}"
+
+
+@dataclass
+class ModelArtifact:
+    kind: str
+    parametrization: str
+    identity: str
+    path: Path
+    sha256: str
+
+
+@dataclass
+class EvalContexts:
+    """The fixed evaluation contexts of a task, as picklable numpy rows for the units."""
+
+    q_start: np.ndarray
+    q_goal: np.ndarray
+    ee_pos: np.ndarray | None
+    ee_rot: np.ndarray | None
+
+    def row(self, i: int) -> dict[str, np.ndarray]:
+        out = {"q_start": self.q_start[i], "q_goal": self.q_goal[i]}
+        if self.ee_pos is not None:
+            out["ee_pos"], out["ee_rot"] = self.ee_pos[i], self.ee_rot[i]
+        return out
+
+
+@dataclass
+class TaskArtifacts:
+    task_name: str
+    task_hash: str
+    dataset_id: str
+    dataset_hash: str
+    contexts: EvalContexts
+    models: dict[tuple[str, str], ModelArtifact] = field(default_factory=dict)
+
+    def model_for(self, method: str, parametrization: str) -> ModelArtifact | None:
+        from mpd.planners import get_planner_class
+
+        kind = get_planner_class(method).model_kind
+        return None if kind is None else self.models[(kind, parametrization)]
+
+    def summary(self) -> dict:
+        return {
+            "task_hash": self.task_hash, "dataset_id": self.dataset_id, "dataset_hash": self.dataset_hash,
+            "models": {f"{k}-{p}": m.identity for (k, p), m in self.models.items()},
+            "n_contexts": int(len(self.contexts.q_start)),
+        }
+
+
+def _model_kinds(cells, task_name: str) -> set[tuple[str, str]]:
+    from mpd.planners import get_planner_class
+
+    out = set()
+    for c in cells:
+        p = c.p
+        if p["task"] != task_name:
+            continue
+        kind = get_planner_class(p["method"]).model_kind
+        if kind is not None:
+            out.add((kind, p["parametrization"] or "bspline"))
+    return out
+
+
+def training_settings(task: Task, ts):
+    spec = task.training(ts.profile)
+    if ts.train_steps is not None:
+        spec = dataclasses.replace(spec, steps=ts.train_steps, checkpoint_every=min(spec.checkpoint_every, ts.train_steps),
+                                   val_every=min(spec.val_every, ts.train_steps))
+    return spec
+
+
+def training_arrays(task: Task, dataset, parametrization: str):
+    """The free rows of every dataset path in a parametrization, with contexts and splits, for model training."""
+    from mpd.models.data import TrainingArrays
+    from mpd.trajectory import make_parametrization
+
+    param = make_parametrization(task, parametrization)
+    if parametrization == "bspline":
+        w = dataset.control_points
+    else:
+        w = param.fit(dataset.paths)
+    x = np.ascontiguousarray(param.free_rows(w), dtype=np.float32)
+    ctx = {"q_start": dataset.q_start.astype(np.float32)}
+    if task.ee_goal:
+        ctx["ee_pos"] = dataset.ee_pos.astype(np.float32)
+        ctx["ee_rot"] = dataset.ee_rot.astype(np.float32)
+    else:
+        ctx["q_goal"] = dataset.q_goal.astype(np.float32)
+    return TrainingArrays(
+        x=x, context=ctx, split=dataset.split.astype(np.int8), task_name=task.name, task_hash=task.file_hash,
+        dataset_hash=dataset.info["content_hash"], parametrization=parametrization,
+        parametrization_settings=param.settings(),
+    )
+
+
+def needs(spec, cells) -> list[Need]:
+    """What each task of the spec needs, and whether it exists (for the dry run)."""
+    from mpd.data.definition import load_definition
+    from mpd.data.generate import chunk_states
+    from mpd.models.train import model_dir, model_identity
+    from mpd.trajectory import make_parametrization
+
+    out = []
+    for task_name in sorted({c.p["task"] for c in cells}):
+        task = load_task(task_name)
+        ts = spec.data.tasks[task_name]
+        rd = load_definition(ts.dataset)
+        bad = chunk_states(rd)
+        n = rd.definition.n_contexts
+        rate = _PATHS_PER_S.get(task.robot.name, 2.0) * 2
+        out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate))
+        content = _content_hash(rd) if not bad else None
+        for kind, par in sorted(_model_kinds(cells, task_name)):
+            train = training_settings(task, ts)
+            steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults) + (1 if task.robot.dof > 4 else 0), 5.0)
+            if content is None:
+                out.append(Need("model", task_name, f"{kind}/{par} (after the dataset)", False, f"train {train.steps} steps", train.steps / steps_s))
+                continue
+            param = make_parametrization(task, par)
+            ident = model_identity(content, kind, par, param.settings(), task.spec.model, train, 0)
+            exists = (model_dir(task_name, kind, par, ident) / "model.pt").exists()
+            out.append(Need("model", task_name, f"{kind}/{par} [{ident}]", exists, f"train {train.steps} steps", train.steps / steps_s))
+    return out
+
+
+def _content_hash(rd) -> str | None:
+    import json
+
+    p = rd.data_dir / "lock.json"
+    return json.loads(p.read_text()).get("content_hash") if p.exists() else None
+
+
+def resolve(spec, cells, progress: bool = True) -> dict[str, TaskArtifacts]:
+    """Datasets, evaluation contexts and models of every task of the cells, generated/trained when missing."""
+    from mpd.data.contexts import evaluation_contexts
+    from mpd.data.dataset import load_dataset
+    from mpd.models.train import train_model
+
+    out = {}
+    for task_name in sorted({c.p["task"] for c in cells}):
+        task = load_task(task_name)
+        ts = spec.data.tasks[task_name]
+        ds = load_dataset(ts.dataset, progress=progress)
+        n_ctx = ts.n_contexts or spec.data.n_contexts
+        ec = evaluation_contexts(task, n_ctx)
+        contexts = EvalContexts(ec.q_start, ec.q_goal, ec.ee_pos, ec.ee_rot)
+        art = TaskArtifacts(task.name, task.file_hash, ds.info["identity"], ds.info["content_hash"], contexts)
+        for kind, par in sorted(_model_kinds(cells, task_name)):
+            arrays = training_arrays(task, ds, par)
+            path = Path(train_model(arrays, kind, task.spec.model, training_settings(task, ts), seed=0, progress=progress))
+            import json
+
+            meta = json.loads((path.parent / "meta.json").read_text())
+            art.models[(kind, par)] = ModelArtifact(kind, par, meta["identity"], path, file_sha256(path))
+        out[task_name] = art
+    return out

@@ -1,0 +1,202 @@
+"""``mpd plan``: run one planner on evaluation contexts (or a given start/goal), write trajectories, metrics,
+timings and figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+
+from mpd.schema import ConfigError
+
+
+def _vector(text: str | None, name: str, dof: int) -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        v = np.array([float(x) for x in text.replace(" ", "").split(",") if x != ""])
+    except ValueError:
+        raise ConfigError(f"--{name}", "", f"{text!r} is not a comma-separated list of numbers") from None
+    if len(v) != dof:
+        raise ConfigError(f"--{name}", "", f"{text!r} has {len(v)} values, the robot has {dof} joints")
+    return v
+
+
+def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, rotation_deg: float) -> None:
+    import torch
+
+    from mpd.collision import CollisionChecker
+
+    qt = torch.as_tensor(q, dtype=torch.float64)
+    lo, hi = task.robot.q_min.numpy(), task.robot.q_max.numpy()
+    out = np.nonzero((q < lo) | (q > hi))[0]
+    if len(out):
+        j = int(out[0])
+        raise ConfigError(f"--{name}", "", f"joint {j} = {q[j]:g} is outside its limits [{lo[j]:g}, {hi[j]:g}]")
+    v = CollisionChecker(task, extra_objects, rotation_deg).configs(qt[None])
+    if not bool(v.env_free[0]):
+        raise ConfigError(f"--{name}", "", f"{list(np.round(q, 4))} is in collision with the environment")
+    if not bool(v.self_free[0]):
+        raise ConfigError(f"--{name}", "", f"{list(np.round(q, 4))} is in self collision")
+
+
+@click.command("plan")
+@click.option("--task", "task_name", required=True, help="task name or task file")
+@click.option("--planner", "planner_name", default="mpd", show_default=True, help="mpd, dprior, dprior-cost, cvae, cvae-cost, gp-cost, rrtconnect-cost")
+@click.option("--n-samples", "--batch", "n_samples", type=int, default=100, show_default=True, help="trajectories per context")
+@click.option("--n-contexts", type=int, default=1, show_default=True, help="plan the first N evaluation contexts")
+@click.option("--start", default=None, help="start configuration, comma separated (instead of evaluation contexts)")
+@click.option("--goal", default=None, help="goal configuration (joint-goal tasks; for EE-goal tasks its FK is the goal pose)")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--extra-objects", is_flag=True, help="plan with the extra objects (unseen in training)")
+@click.option("--rotation", type=float, default=0.0, show_default=True, help="rotate the scene about the base z axis (deg)")
+@click.option("--preset", type=click.Choice(["official", "paper"]), default="official", show_default=True)
+@click.option("--sampler", type=click.Choice(["ddim", "ddpm"]), default="ddim", show_default=True)
+@click.option("--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True)
+@click.option("--model", "model_ref", default="latest", show_default=True, help="checkpoint path, model identity, or 'latest' for the task")
+@click.option("--set", "overrides", multiple=True, help="planner setting override, e.g. --set guide_lr=0.5")
+@click.option("--device", default=None)
+@click.option("--out", type=click.Path(file_okay=False), required=True, help="output folder")
+def plan(task_name, planner_name, n_samples, n_contexts, start, goal, seed, extra_objects, rotation, preset, sampler,
+         parametrization, model_ref, overrides, device, out):
+    """Plan with one method; writes trajectories.npz, metrics.json and figures to OUT."""
+    import torch
+
+    from mpd.collision import CollisionChecker
+    from mpd.metrics import evaluate
+    from mpd.planners import Context, get_planner_class, make_planner
+    from mpd.tasks import load_task
+
+    # -- validate everything before any work ---------------------------------------------------------------
+    task = load_task(task_name)
+    try:
+        cls = get_planner_class(planner_name)
+    except ValueError as e:
+        raise ConfigError("--planner", "", str(e)) from None
+    if n_samples < 1 or n_contexts < 1:
+        raise ConfigError("--n-samples/--n-contexts", "", "must be positive")
+    ov = {}
+    for item in overrides:
+        k, _, v = item.partition("=")
+        try:
+            ov[k] = json.loads(v)
+        except json.JSONDecodeError:
+            ov[k] = v
+    if sampler != "ddim":
+        ov["sampler"] = sampler
+    qs, qg = _vector(start, "start", task.dof), _vector(goal, "goal", task.dof)
+    if (qs is None) != (qg is None):
+        raise ConfigError("--start/--goal", "", "give both a start and a goal, or neither")
+    if qs is not None:
+        _check_configuration(task, qs, "start", extra_objects, rotation)
+        _check_configuration(task, qg, "goal", extra_objects, rotation)
+    model = None
+    if cls.model_kind is not None:
+        model = find_model(task, cls.model_kind, parametrization, model_ref, device=device)
+    planner = make_planner(planner_name, task, extra_objects=extra_objects, rotation_deg=rotation, preset=preset,
+                           overrides=ov, parametrization=parametrization, model=model, device=device)
+    # -- contexts -----------------------------------------------------------------------------------------------
+    if qs is not None:
+        ctxs = [_context_from_goal(task, qs, qg)]
+    else:
+        from mpd.data.contexts import evaluation_contexts
+
+        ec = evaluation_contexts(task, max(n_contexts, 1))
+        ctxs = [_context_row(task, ec, i) for i in range(n_contexts)]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    checker = CollisionChecker(task, extra_objects, rotation)
+    summary, arrays = [], {}
+    for i, ctx in enumerate(ctxs):
+        res = planner.plan(ctx.to(planner.device), n_samples, seed * 100_003 + i, record_history=(i == 0))
+        d = res.dense
+        dense64 = type(d)(d.q.cpu().double(), d.dq_ds.cpu().double(), d.ddq_ds2.cpu().double(), d.duration)
+        m, val, best = evaluate(checker, dense64, q_goal=None if ctx.q_goal is None else ctx.q_goal.double(),
+                                ee_goal=None if ctx.ee_pos is None else (ctx.ee_pos.double(), ctx.ee_rot.double()))
+        summary.append({"context": i, **m, "best_index": best, "timings": res.timings, "info": res.info})
+        arrays[f"ctx{i}_q"] = dense64.q.numpy().astype(np.float32)
+        arrays[f"ctx{i}_control_points"] = res.control_points.cpu().numpy()
+        arrays[f"ctx{i}_valid"] = val.valid.numpy()
+        click.echo(f"context {i}: success {m['success']:.0f}  valid {m['fraction_valid']:.2f}  vendi {m['vendi']:.1f}  "
+                   f"time {res.timings['total']:.3f} s")
+        if i == 0:
+            _figures(task, planner, ctx, res, val, out, extra_objects, rotation, checker)
+    np.savez_compressed(out / "trajectories.npz", **arrays)
+    keys = ("success", "fraction_valid", "vendi", "ee_pos_error", "ee_ori_error_deg", "path_length", "smoothness")
+    mean = {k: float(np.nanmean([s[k] for s in summary])) if any(not np.isnan(s[k]) for s in summary) else float("nan") for k in keys}
+    mean["time_total"] = float(np.mean([s["timings"]["total"] for s in summary]))
+    doc = {"task": task.name, "planner": planner_name, "preset": preset, "n_samples": n_samples, "seed": seed,
+           "extra_objects": extra_objects, "rotation_deg": rotation, "model": str(model.path) if model else None,
+           "settings": planner.settings.__dict__, "mean": mean, "contexts": summary}
+    (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float))
+    click.echo("mean: " + "  ".join(f"{k} {v:.3f}" for k, v in mean.items()))
+    click.echo(f"wrote {out}/trajectories.npz, metrics.json, trajectories.png" + (", denoising.png" if (out / "denoising.png").exists() else ""))
+
+
+def find_model(task, kind: str, parametrization: str, ref: str, device=None):
+    """A trained model: a checkpoint path, a model identity (or its prefix), or 'latest' for the task."""
+    from mpd.models.checkpoint import load_model
+    from mpd.models.train import list_models
+
+    p = Path(ref)
+    if ref != "latest" and p.exists():
+        return load_model(p, expect_task=task.name, expect_parametrization=parametrization, device=device)
+    metas = [m for m in list_models(task.name) if m.get("kind") == kind and m.get("parametrization") == parametrization]
+    if ref != "latest":
+        metas = [m for m in metas if str(m.get("identity", "")).startswith(ref)]
+    if not metas:
+        what = "no trained" if ref == "latest" else f"no {ref!r}"
+        raise ConfigError("--model", "", f"{what} {kind} model with the {parametrization} parametrization for {task.name} "
+                          f"(train one: mpd train --task {task.name} --model {kind} --parametrization {parametrization})")
+    newest = max(metas, key=lambda m: Path(m["path"]).stat().st_mtime)
+    return load_model(newest["path"], expect_task=task.name, expect_parametrization=parametrization, device=device)
+
+
+def _context_from_goal(task, qs: np.ndarray, qg: np.ndarray):
+    import torch
+
+    from mpd.planners import Context
+
+    q_start = torch.as_tensor(qs, dtype=torch.float32)
+    q_goal = torch.as_tensor(qg, dtype=torch.float32)
+    if task.ee_goal:
+        p, r = task.robot.ee_pose(q_goal.double())
+        return Context(q_start, None, p.float(), r.float())
+    return Context(q_start, q_goal)
+
+
+def _context_row(task, ec, i: int):
+    import torch
+
+    from mpd.planners import Context
+
+    f = lambda a: torch.as_tensor(np.asarray(a[i]), dtype=torch.float32)  # noqa: E731
+    if task.ee_goal:
+        return Context(f(ec.q_start), None, f(ec.ee_pos), f(ec.ee_rot))
+    return Context(f(ec.q_start), f(ec.q_goal))
+
+
+def _figures(task, planner, ctx, res, val, out: Path, extra_objects, rotation, checker) -> None:
+    import torch
+
+    from mpd.viz.scene import denoising_figure, trajectory_figure
+
+    env = task.env(extra_objects, rotation)
+    d = res.dense
+    trajectory_figure(task, env, d.q.cpu().numpy(), d.dq_dt.cpu().numpy(), d.ddq_dt2.cpu().numpy(), val.valid.numpy(),
+                      out=out / "trajectories.png", title=f"{planner.label} - {task.name}")
+    if res.history and len(res.history) > 2:
+        hist = res.history
+        picks = sorted(set(np.linspace(0, len(hist) - 1, 5).round().astype(int)))
+        steps = []
+        for k in picks:
+            h = hist[k]
+            B = h.free.shape[0]
+            dd = planner.param.dense(h.free, ctx.q_start.to(h.free).expand(B, -1),
+                                     None if ctx.q_goal is None else ctx.q_goal.to(h.free).expand(B, -1))
+            q = dd.q.detach().cpu().double()
+            steps.append((f"{h.label} {h.step}", q.numpy(), checker.trajectories(q).valid.numpy()))
+        denoising_figure(task, env, steps, out=out / "denoising.png")
+    torch.cuda.empty_cache() if torch.cuda.is_available() else None
