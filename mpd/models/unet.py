@@ -1,0 +1,204 @@
+"""Temporal U-Net (Janner et al. 2022, "Diffuser") over the control-point axis, FiLM-conditioned.
+
+Input and output are ``(B, H, d)``: H control points (or waypoints) of d joints. Internally the tensor is
+``(B, channels, H)`` and 1-D convolutions run along H, acting as a low-pass filter between neighbouring
+control points. Layout, with ``dims = [d, dim*m_1, ..., dim*m_L]``:
+
+* down level i: two residual temporal blocks ``dims[i] -> dims[i+1]``, then a stride-2 conv (except on the
+  last level);
+* mid: two residual blocks at ``dims[L]``;
+* up levels L-1 .. 1: concatenate the skip of the down level at the same resolution, two residual blocks
+  ``2 dims[i+1] -> dims[i]``, then a transposed-conv upsampling (as in Diffuser, the first level's output is
+  not used as a skip);
+* a conv block and a 1x1 conv back to d.
+
+Each residual block is modulated by FiLM on ``cond``: a per-channel scale and shift from a linear layer.
+For the diffusion model ``cond`` = [sinusoidal step embedding -> MLP, context embedding].
+H is padded (edge values) to a multiple of ``2^(L-1)`` and cropped back, so any H works.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+KERNEL_SIZE = 5
+N_GROUPS = 8
+
+
+class SinusoidalPosEmb(nn.Module):
+    """Transformer-style embedding of a (possibly fractional) diffusion step."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        if dim % 2 or dim < 4:
+            raise ValueError(f"time embedding dimension must be even and >= 4, got {dim}")
+        self.dim = dim
+
+    def forward(self, t: torch.Tensor) -> torch.Tensor:
+        half = self.dim // 2
+        freqs = torch.exp(
+            torch.arange(half, device=t.device, dtype=torch.float32) * (-math.log(10000.0) / (half - 1))
+        )
+        arg = t.float()[:, None] * freqs[None, :]
+        return torch.cat([arg.sin(), arg.cos()], dim=-1)
+
+
+class Conv1dBlock(nn.Sequential):
+    """Conv1d -> GroupNorm -> Mish, length preserving."""
+
+    def __init__(self, c_in: int, c_out: int, kernel_size: int = KERNEL_SIZE, n_groups: int = N_GROUPS):
+        super().__init__(
+            nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2),
+            nn.GroupNorm(n_groups, c_out),
+            nn.Mish(),
+        )
+
+
+class ResidualTemporalBlock(nn.Module):
+    """Two conv blocks with FiLM on the first one's output, plus a (1x1-projected) residual path."""
+
+    def __init__(self, c_in: int, c_out: int, cond_dim: int, kernel_size: int = KERNEL_SIZE):
+        super().__init__()
+        self.block1 = Conv1dBlock(c_in, c_out, kernel_size)
+        self.block2 = Conv1dBlock(c_out, c_out, kernel_size)
+        self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * c_out))
+        self.residual = nn.Conv1d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        h = self.block1(x)
+        scale, shift = self.film(cond).unsqueeze(-1).chunk(2, dim=1)
+        # (1 + scale) so that a zero FiLM output is the identity modulation
+        h = self.block2(h * (1 + scale) + shift)
+        return h + self.residual(x)
+
+
+def downsample(channels: int) -> nn.Module:
+    return nn.Conv1d(channels, channels, 3, stride=2, padding=1)
+
+
+def upsample(channels: int) -> nn.Module:
+    return nn.ConvTranspose1d(channels, channels, 4, stride=2, padding=1)
+
+
+def level_channels(dof: int, dim: int, dim_mults: Sequence[int]) -> list[tuple[int, int]]:
+    """(in, out) channels of each down level."""
+    if not dim_mults:
+        raise ValueError("unet_dim_mults must not be empty")
+    dims = [dof] + [dim * m for m in dim_mults]
+    for c in dims[1:]:
+        if c % N_GROUPS:
+            raise ValueError(f"U-Net channel count {c} is not a multiple of the {N_GROUPS} GroupNorm groups")
+    return list(zip(dims[:-1], dims[1:]))
+
+
+def padded_horizon(horizon: int, n_levels: int) -> int:
+    """Smallest multiple of 2^(n_levels - 1) that is >= horizon."""
+    f = 2 ** (n_levels - 1)
+    return -(-horizon // f) * f
+
+
+def pad_horizon(x: torch.Tensor, n_levels: int) -> torch.Tensor:
+    """Pad ``(B, C, H)`` at the end of H by repeating the last column."""
+    h = x.shape[-1]
+    extra = padded_horizon(h, n_levels) - h
+    return F.pad(x, (0, extra), mode="replicate") if extra else x
+
+
+def as_step_tensor(t: int | torch.Tensor, batch: int, device: torch.device) -> torch.Tensor:
+    """A diffusion step given as an int, a scalar or a ``(B,)`` tensor -> ``(B,)`` tensor on ``device``."""
+    t = torch.as_tensor(t, device=device)
+    if t.ndim == 0:
+        t = t.expand(batch)
+    if t.shape != (batch,):
+        raise ValueError(f"diffusion step must be a scalar or have shape ({batch},), got {tuple(t.shape)}")
+    return t
+
+
+def down_path(levels: list[tuple[int, int]], cond_dim: int) -> nn.ModuleList:
+    """Per level: [residual block in -> out, residual block out -> out, stride-2 conv (identity on last)]."""
+    downs = nn.ModuleList()
+    for i, (c_in, c_out) in enumerate(levels):
+        last = i == len(levels) - 1
+        downs.append(
+            nn.ModuleList(
+                [
+                    ResidualTemporalBlock(c_in, c_out, cond_dim),
+                    ResidualTemporalBlock(c_out, c_out, cond_dim),
+                    nn.Identity() if last else downsample(c_out),
+                ]
+            )
+        )
+    return downs
+
+
+def up_path(levels: list[tuple[int, int]], cond_dim: int, skips: bool) -> nn.ModuleList:
+    """Levels L-1 .. 1: [residual block (2 out or out) -> in, residual block in -> in, upsampling]; the first
+    block takes twice the channels when the down level's output is concatenated (``skips``)."""
+    ups = nn.ModuleList()
+    for c_in, c_out in reversed(levels[1:]):
+        ups.append(
+            nn.ModuleList(
+                [
+                    ResidualTemporalBlock((2 if skips else 1) * c_out, c_in, cond_dim),
+                    ResidualTemporalBlock(c_in, c_in, cond_dim),
+                    upsample(c_in),
+                ]
+            )
+        )
+    return ups
+
+
+class TemporalUnet(nn.Module):
+    """eps_theta(x_t, t, context embedding): ``(B, H, d) -> (B, H, d)`` for any H."""
+
+    def __init__(
+        self,
+        dof: int,
+        context_dim: int,
+        dim: int = 32,
+        dim_mults: Sequence[int] = (1, 2, 4),
+        time_emb_dim: int = 32,
+    ):
+        super().__init__()
+        self.dof = dof
+        self.n_levels = len(dim_mults)
+        levels = level_channels(dof, dim, dim_mults)
+        self.time_mlp = nn.Sequential(
+            SinusoidalPosEmb(time_emb_dim),
+            nn.Linear(time_emb_dim, 4 * time_emb_dim),
+            nn.Mish(),
+            nn.Linear(4 * time_emb_dim, time_emb_dim),
+        )
+        cond_dim = time_emb_dim + context_dim
+        self.downs = down_path(levels, cond_dim)
+        mid = levels[-1][1]
+        self.mid1 = ResidualTemporalBlock(mid, mid, cond_dim)
+        self.mid2 = ResidualTemporalBlock(mid, mid, cond_dim)
+        self.ups = up_path(levels, cond_dim, skips=True)
+        top = levels[0][1]
+        self.final = nn.Sequential(Conv1dBlock(top, top), nn.Conv1d(top, dof, 1))
+
+    def forward(self, x: torch.Tensor, t: int | torch.Tensor, context_emb: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 3 or x.shape[-1] != self.dof:
+            raise ValueError(f"expected x of shape (B, H, {self.dof}), got {tuple(x.shape)}")
+        b, horizon, _ = x.shape
+        if context_emb.shape[0] == 1 and b > 1:
+            context_emb = context_emb.expand(b, -1)
+        cond = torch.cat([self.time_mlp(as_step_tensor(t, b, x.device)), context_emb], dim=-1)
+        h = pad_horizon(x.transpose(1, 2), self.n_levels)
+        skips = []
+        for i, (res1, res2, down) in enumerate(self.downs):
+            h = res2(res1(h, cond), cond)
+            if i > 0:  # level 0 is at full resolution, where no up level concatenates a skip
+                skips.append(h)
+            h = down(h)
+        h = self.mid2(self.mid1(h, cond), cond)
+        for res1, res2, up in self.ups:
+            h = torch.cat([h, skips.pop()], dim=1)
+            h = up(res2(res1(h, cond), cond))
+        return self.final(h)[..., :horizon].transpose(1, 2)

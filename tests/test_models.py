@@ -1,0 +1,475 @@
+"""mpd.models: normalizer, U-Net shapes, diffusion maths and samplers, CVAE, training, checkpoints."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import signal
+
+import numpy as np
+import pytest
+import scipy.stats
+import torch
+
+import mpd.models.train as train_module
+from mpd.models import (
+    CVAE,
+    DiffusionModel,
+    Normalizer,
+    TrainingArrays,
+    build_network,
+    ddim_step,
+    ddim_timesteps,
+    ddpm_step,
+    get_schedule,
+    kl_standard_normal,
+    list_models,
+    load_model,
+    model_identity,
+    predict_x0,
+    q_sample,
+    read_checkpoint,
+    sample,
+    train_model,
+)
+from mpd.models.diffusion import ddpm_mean
+from mpd.schema import ConfigError
+from mpd.tasks import list_tasks, load_task
+from mpd.tasks.spec import ModelSpec, TrainingSpec
+
+TINY = ModelSpec(unet_dim=16, unet_dim_mults=[1, 2], context_dim=16)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # the machine is shared and has 2 cores: oversubscribed intra-op threads make tiny nets ~10x slower
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def toy_arrays(
+    n: int = 16, horizon: int = 8, dof: int = 2, ee: bool = False, n_val: int = 0, seed: int = 0, **kw
+):
+    """Bimodal arcs between random start and goal (the sign of the bend is the mode)."""
+    rng = np.random.default_rng(seed)
+    qs, qg = rng.uniform(-1, 1, (n, dof)), rng.uniform(-1, 1, (n, dof))
+    s = np.linspace(0, 1, horizon + 2)[1:-1][None, :, None]
+    bend = 0.3 * np.sin(np.pi * s) * rng.choice([-1.0, 1.0], (n, 1, 1))
+    x = (qs[:, None] * (1 - s) + qg[:, None] * s + bend).astype(np.float32)
+    if ee:
+        rot = scipy.stats.special_ortho_group.rvs(3, size=n, random_state=seed)
+        context = {"q_start": qs, "ee_pos": rng.uniform(-0.5, 0.5, (n, 3)), "ee_rot": rot}
+    else:
+        context = {"q_start": qs, "q_goal": qg}
+    split = np.zeros(n, np.int8)
+    split[n - n_val :] = 1
+    fields = dict(task_name="Toy", task_hash="task0", dataset_hash="data0", parametrization="bspline")
+    fields.update(kw)
+    return TrainingArrays(x, context, split, **fields)
+
+
+def tiny_training(**kw) -> TrainingSpec:
+    base = dict(
+        batch_size=32, steps=40, lr=1e-3, ema_start=20, ema_every=5, val_every=10, checkpoint_every=10
+    )
+    base.update(kw)
+    return TrainingSpec(**base)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    arrays = toy_arrays(n_val=4)
+    path = train_model(arrays, "diffusion", TINY, tiny_training(), seed=0, progress=False, cache=cache)
+    return arrays, path, cache
+
+
+# --- normalizer ------------------------------------------------------------------------------------------
+def test_normalizer_maps_train_range_to_unit_box_and_back():
+    x = torch.tensor(np.random.default_rng(0).normal(size=(50, 7, 3)) * [1.0, 10.0, 0.1], dtype=torch.float64)
+    n = Normalizer.fit(x)
+    z = n.normalize(x)
+    assert torch.allclose(z.flatten(0, 1).min(0).values, -torch.ones(3, dtype=torch.float64))
+    assert torch.allclose(z.flatten(0, 1).max(0).values, torch.ones(3, dtype=torch.float64))
+    assert torch.allclose(n.unnormalize(z), x)
+    assert Normalizer.from_dict(json.loads(json.dumps(n.to_dict()))) == n
+
+
+def test_normalizer_guards_zero_range():
+    n = Normalizer.fit(np.array([[1.0, 2.0], [1.0, 3.0]]))
+    z = n.normalize(torch.tensor([[1.0, 2.5]]))
+    assert torch.isfinite(z).all() and z[0, 0] == 0 and z[0, 1] == 0
+
+
+def test_normalizer_gradient_scale_matches_autograd():
+    n = Normalizer(lo=[-2.0, 0.0, 5.0], hi=[2.0, 0.5, 9.0])
+    w = torch.tensor([1.0, -3.0, 0.5], dtype=torch.float64)
+    z = torch.randn(4, 3, dtype=torch.float64, requires_grad=True)
+
+    def cost(raw):
+        return (w * raw**2).sum()
+
+    (g_norm,) = torch.autograd.grad(cost(n.unnormalize(z)), z)
+    raw = n.unnormalize(z).detach().requires_grad_(True)
+    (g_raw,) = torch.autograd.grad(cost(raw), raw)
+    assert torch.allclose(n.grad_to_normalized(g_raw), g_norm)
+    assert torch.allclose(n.grad_to_raw(g_norm), g_raw)
+
+
+# --- networks --------------------------------------------------------------------------------------------
+def task_horizons(task) -> list[int]:
+    """B-spline free rows, waypoint free rows (n - 2, n - 1), plus sizes no power of 2 divides."""
+    ncp = task.spec.trajectory.n_control_points
+    return sorted({ncp - (5 if task.ee_goal else 6), ncp - 2, ncp - 1, 13, 1})
+
+
+@pytest.mark.parametrize("task_name", list_tasks())
+def test_unet_and_cvae_shapes_for_every_task(task_name):
+    task = load_task(task_name)
+    kind = task.spec.context.kind
+    dof = task.dof
+    for horizon in task_horizons(task):
+        ctx = (
+            {"q_start": torch.randn(2, dof), "ee_pos": torch.randn(2, 3), "ee_rot": torch.randn(2, 3, 3)}
+            if task.ee_goal
+            else {"q_start": torch.randn(2, dof), "q_goal": torch.randn(2, dof)}
+        )
+        x = torch.randn(2, horizon, dof)
+        net = DiffusionModel(dof, horizon, kind, task.spec.model)
+        assert net(x, torch.tensor([0, 99]), ctx).shape == (2, horizon, dof)
+        assert net(x, 5, {k: v[:1] for k, v in ctx.items()}).shape == (2, horizon, dof)  # one shared context
+        cvae = CVAE(dof, horizon, kind, task.spec.model)
+        recon, mu, logvar = cvae(x, ctx)
+        assert recon.shape == x.shape and mu.shape == logvar.shape == (2, 32)
+
+
+def test_panda_network_size():
+    spec = load_task("EnvSpheres3D-RobotPanda").spec.model
+    n = sum(p.numel() for p in DiffusionModel(7, 32, "goal_ee_pose", spec).parameters())
+    assert 3e6 < n < 6e6
+
+
+def test_context_encoder_rejects_missing_or_misshaped_fields():
+    net = DiffusionModel(2, 8, "goal_joint_position", TINY)
+    with pytest.raises(ValueError, match="q_goal"):
+        net(torch.randn(1, 8, 2), 0, {"q_start": torch.randn(1, 2)})
+    with pytest.raises(ValueError, match="shape"):
+        net(torch.randn(1, 8, 2), 0, {"q_start": torch.randn(1, 3), "q_goal": torch.randn(1, 2)})
+
+
+# --- diffusion maths -------------------------------------------------------------------------------------
+def test_cosine_schedule_and_closed_forms():
+    sch = get_schedule()
+    betas, abar = sch.tables["betas"], sch.tables["alphas_cumprod"]
+    assert len(betas) == 100 and (betas >= 0).all() and betas.max() <= 0.999
+    assert np.allclose(abar, np.cumprod(1 - betas)) and (np.diff(abar) < 0).all()
+    x0, eps = torch.rand(5, 4, 2, dtype=torch.float64) * 2 - 1, torch.randn(5, 4, 2, dtype=torch.float64)
+    t = torch.tensor([0, 3, 50, 98, 99])
+    xt = q_sample(x0, t, eps)
+    assert torch.allclose(predict_x0(xt, eps, t, clip=False), x0)
+    # posterior mean via x0 == the paper's eq. (1/sqrt(alpha_t)) (x_t - beta_t / sqrt(1 - abar_t) eps)
+    for step in (1, 10, 60, 99):
+        paper = (xt - betas[step] / math.sqrt(1 - abar[step]) * eps) / math.sqrt(1 - betas[step])
+        assert torch.allclose(ddpm_mean(xt, eps, step, clip=False), paper)
+
+
+def test_ddpm_and_ddim_steps_end_at_clipped_x0():
+    xt, eps = torch.randn(3, 4, 2) * 3, torch.randn(3, 4, 2)
+    x0 = predict_x0(xt, eps, 0)
+    assert x0.abs().max() <= 1
+    assert torch.equal(ddpm_step(xt, eps, 0, torch.randn_like(xt)), x0)
+    assert torch.equal(ddim_step(xt, eps, 5, -1, eta=1.0, noise=torch.randn_like(xt)), predict_x0(xt, eps, 5))
+    # no noise on the step into level 0, and eta = 0 ignores the noise
+    assert torch.equal(
+        ddim_step(xt, eps, 1, 0, 1.0, torch.randn_like(xt)), ddim_step(xt, eps, 1, 0, 1.0, None)
+    )
+    assert torch.equal(
+        ddim_step(xt, eps, 9, 4, 0.0, torch.randn_like(xt)), ddim_step(xt, eps, 9, 4, 0.0, None)
+    )
+    assert not torch.equal(
+        ddim_step(xt, eps, 9, 4, 0.5, torch.randn_like(xt)), ddim_step(xt, eps, 9, 4, 0.5, None)
+    )
+
+
+def test_ddim_timesteps_paper_variant():
+    pairs = ddim_timesteps(15, "quadratic", variant="paper")
+    ts = [t for t, _ in pairs]
+    assert len(pairs) == 15 and len(set(ts)) == 15 and ts == sorted(ts, reverse=True)
+    assert ts[0] == 90 and pairs[-1] == (0, -1)
+    assert all(t_next == nxt for (_, t_next), nxt in zip(pairs, ts[1:] + [-1]))
+    assert ddim_timesteps(15, "quadratic", variant="paper") == pairs  # deterministic
+    assert ddim_timesteps(100, "uniform") == [(t, t - 1) for t in range(99, -1, -1)]
+
+
+def test_ddim_timesteps_official_variant():
+    base = {0, 1, 4, 7, 11, 16, 22, 29, 37, 45, 55, 66, 77, 90}
+    runs = [
+        ddim_timesteps(15, variant="official", generator=torch.Generator().manual_seed(s)) for s in range(6)
+    ]
+    for pairs in runs:
+        ts = [t for t, _ in pairs]
+        assert len(pairs) == 15 and pairs[-2:] == [(1, 0), (1, 0)]
+        assert set(ts[:-1]) | {0} >= base and len(set(ts[:-1]) | {0}) == 15  # one extra unused step
+        assert ts == sorted(ts, reverse=True)
+    assert len({tuple(p) for p in runs}) > 1  # the extra step comes from the generator
+    again = ddim_timesteps(15, variant="official", generator=torch.Generator().manual_seed(0))
+    assert again == runs[0]
+
+
+class GaussianEps:
+    """Exact noise predictor for 1-D data ~ N(mu, s^2):
+    E[eps | x_t] = sqrt(1 - a) (x_t - sqrt(a) mu) / (a s^2 + 1 - a)."""
+
+    horizon, dof = 1, 1
+
+    def __init__(self, mu: float, s: float):
+        self.mu, self.s, self.sch = mu, s, get_schedule()
+
+    def __call__(self, x, t, context):
+        a = self.sch.abar(t)
+        return math.sqrt(1 - a) * (x - math.sqrt(a) * self.mu) / (a * self.s**2 + 1 - a)
+
+
+def ddpm_output_law(mu: float, s: float) -> tuple[float, float]:
+    """Mean and std of the 100-step DDPM output for Gaussian data: every step is affine + Gaussian noise."""
+    tab = get_schedule().tables
+    mean, var = 0.0, 1.0
+    for t in range(99, -1, -1):
+        a = tab["alphas_cumprod"][t]
+        k = math.sqrt(1 - a) / (a * s * s + 1 - a)
+        gain = (
+            tab["posterior_mean_coef1"][t] * (1 - math.sqrt(1 - a) * k) / math.sqrt(a)
+            + tab["posterior_mean_coef2"][t]
+        )
+        offset = tab["posterior_mean_coef1"][t] * math.sqrt(1 - a) * k * mu
+        mean, var = gain * mean + offset, gain**2 * var + (tab["posterior_variance"][t] if t > 0 else 0.0)
+    return mean, math.sqrt(var)
+
+
+def test_ddim_eta1_all_steps_matches_ddpm_in_distribution():
+    mu, s, n = 0.1, 0.3, 4000
+    model = GaussianEps(mu, s)
+    ddpm = sample(model, {}, n, sampler="ddpm", generator=torch.Generator().manual_seed(0)).double().flatten()
+    ddim = (
+        sample(
+            model,
+            {},
+            n,
+            sampler="ddim",
+            steps=100,
+            schedule="uniform",
+            eta=1.0,
+            generator=torch.Generator().manual_seed(1),
+        )
+        .double()
+        .flatten()
+    )
+    law_mean, law_std = ddpm_output_law(mu, s)
+    for x in (ddpm.numpy(), ddim.numpy()):
+        assert scipy.stats.kstest(x, "norm", args=(law_mean, law_std)).pvalue > 0.01
+        # and both are close to the data distribution itself (DDPM's fixed variance shrinks it a little)
+        assert abs(x.mean() - mu) < 0.02 and abs(x.std() / s - 1) < 0.08
+    assert scipy.stats.ks_2samp(ddpm.numpy(), ddim.numpy()).pvalue > 0.01
+    # deterministic DDIM (the probability-flow ODE) with all steps recovers the data distribution too
+    ode = sample(
+        model, {}, n, steps=100, schedule="uniform", eta=0.0, generator=torch.Generator().manual_seed(2)
+    )
+    assert scipy.stats.kstest(ode.double().flatten().numpy(), "norm", args=(mu, s)).pvalue > 0.01
+
+
+def test_sampling_is_seeded_and_history_has_every_step():
+    model = GaussianEps(0.0, 0.5)
+    a, hist = sample(model, {}, 7, generator=torch.Generator().manual_seed(3), return_history=True, eta=0.5)
+    b = sample(model, {}, 7, generator=torch.Generator().manual_seed(3), eta=0.5)
+    assert torch.equal(a, b) and len(hist) == 16 and torch.equal(hist[-1], a)
+
+
+# --- CVAE ------------------------------------------------------------------------------------------------
+def test_kl_matches_torch_distributions():
+    mu, logvar = torch.randn(6, 32, dtype=torch.float64), torch.randn(6, 32, dtype=torch.float64)
+    q = torch.distributions.Normal(mu, (0.5 * logvar).exp())
+    p = torch.distributions.Normal(torch.zeros_like(mu), torch.ones_like(mu))
+    assert torch.allclose(kl_standard_normal(mu, logvar), torch.distributions.kl_divergence(q, p).sum(-1))
+
+
+def test_cvae_trains_and_samples_with_ee_context(tmp_path):
+    arrays = toy_arrays(n=24, horizon=9, dof=3, ee=True, n_val=4)
+    spec = tiny_training(steps=30)
+    path = train_model(arrays, "cvae", TINY, spec, seed=0, progress=False, cache=tmp_path)
+    meta = json.loads((path.parent / "meta.json").read_text())
+    assert meta["final_val_loss"] is not None and "ee_rot" not in meta["normalizers"]["context"]
+    model = load_model(path, expect_task="Toy", device="cpu")
+    assert isinstance(model.network, CVAE)
+    ctx = {k: v[0] for k, v in arrays.context.items()}
+    x = model.sample(ctx, 5, generator=torch.Generator().manual_seed(0))
+    assert x.shape == (5, 9, 3) and torch.isfinite(x).all()
+    terms = model.network.loss_terms(
+        torch.zeros(2, 9, 3), model.normalize_context({k: v[:2] for k, v in arrays.context.items()})
+    )
+    assert torch.allclose(terms["loss"], terms["reconstruction"] + 0.1 * terms["kl"])
+
+
+# --- training and checkpoints ----------------------------------------------------------------------------
+def test_tiny_model_overfits(tmp_path):
+    arrays = toy_arrays(n=16)
+    spec = TrainingSpec(
+        batch_size=64, steps=300, lr=2e-3, val_every=10**6, checkpoint_every=10**6, ema_start=10**6
+    )
+    path = train_model(arrays, "diffusion", TINY, spec, seed=0, progress=False, cache=tmp_path)
+    trained = load_model(path, device="cpu")
+    x0 = trained.x_normalizer.normalize(torch.as_tensor(arrays.x)).repeat(64, 1, 1)
+    ctx = {k: v.repeat(64, 1) for k, v in trained.normalize_context(arrays.context).items()}
+
+    def loss(net):
+        with torch.no_grad():
+            return float(net.loss(x0, ctx, torch.Generator().manual_seed(1)))
+
+    assert loss(train_module._init_network("diffusion", arrays, TINY, 0)) > 10 * loss(trained.network)
+
+
+def test_checkpoint_round_trip_gives_identical_samples(trained):
+    arrays, path, cache = trained
+    ctx = {k: v[0] for k, v in arrays.context.items()}
+    a = load_model(path, expect_task="Toy", expect_parametrization="bspline", device="cpu")
+    b = load_model(path.parent, device="cpu")  # the folder works too
+    sa = a.sample(ctx, 6, generator=torch.Generator().manual_seed(0), eta=0.5)
+    sb = b.sample(ctx, 6, generator=torch.Generator().manual_seed(0), eta=0.5)
+    assert torch.equal(sa, sb) and sa.shape == (6, 8, 2)
+    assert not torch.equal(sa, b.sample(ctx, 6, generator=torch.Generator().manual_seed(1), eta=0.5))
+    # raw-unit samples = unnormalized network samples with the normalized context
+    net_out = b.network.sample(
+        b.normalize_context(ctx), 6, generator=torch.Generator().manual_seed(0), eta=0.5
+    )
+    assert torch.allclose(sa, b.x_normalizer.unnormalize(net_out))
+    # a second call finds the model instead of training again
+    again = train_model(arrays, "diffusion", TINY, tiny_training(), seed=0, progress=False, cache=cache)
+    assert again == path and not (path.parent / "last.pt").exists()
+    meta = a.meta
+    assert meta["task_hash"] == "task0" and meta["dataset_hash"] == "data0" and meta["step"] == 40
+    assert meta["provenance"]["mpd_version"]
+
+
+def test_same_seed_same_weights_and_resume_is_exact(tmp_path):
+    arrays = toy_arrays(n_val=4)
+    spec = tiny_training()
+    full = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "a")
+    again = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "b")
+    partial = train_model(
+        arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "c", stop_after=23
+    )
+    assert partial.name == "last.pt" and read_checkpoint(partial)["step"] == 23
+    resumed = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "c")
+    ref = read_checkpoint(full)
+    for other in (read_checkpoint(again), read_checkpoint(resumed)):
+        for key in ("weights", "ema_weights"):
+            assert all(torch.equal(ref[key][k], other[key][k]) for k in ref[key])
+        assert other["history"] == ref["history"]
+
+
+def test_ctrl_c_saves_a_state_that_resumes_exactly(tmp_path, monkeypatch):
+    handler_before = signal.getsignal(signal.SIGINT)
+    arrays = toy_arrays()
+    spec = tiny_training(steps=20, val_every=1000)
+    ref = read_checkpoint(
+        train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "a")
+    )
+    original = train_module._ema_update
+    calls = []
+
+    def ema_then_ctrl_c(*args, **kwargs):
+        original(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 2:  # step 10
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(train_module, "_ema_update", ema_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt, match="step 10"):
+        train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "b")
+    monkeypatch.setattr(train_module, "_ema_update", original)
+    resumed = read_checkpoint(
+        train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "b")
+    )
+    assert all(torch.equal(ref["ema_weights"][k], resumed["ema_weights"][k]) for k in ref["ema_weights"])
+    assert signal.getsignal(signal.SIGINT) is handler_before
+
+
+def test_list_models(trained):
+    arrays, path, cache = trained
+    found = list_models("Toy", cache=cache)
+    assert [m["path"] for m in found] == [str(path)]
+    assert found[0]["steps"] == 40 and found[0]["steps_per_s"] > 0 and found[0]["n_val"] == 4
+    assert list_models("Other", cache=cache) == []
+
+
+def test_wrong_task_or_parametrization_is_a_clear_error(trained):
+    _, path, _ = trained
+    with pytest.raises(ConfigError, match=r"model\.pt.*task 'Toy', expected 'EnvSimple2D"):
+        load_model(path, expect_task="EnvSimple2D-RobotPointMass2D")
+    with pytest.raises(ConfigError, match=r"parametrization 'bspline', expected 'waypoints'"):
+        load_model(path, expect_parametrization="waypoints")
+
+
+def test_truncated_or_foreign_file_is_a_clear_error(trained, tmp_path):
+    _, path, _ = trained
+    data = path.read_bytes()
+    cases = {"truncated.pt": data[: len(data) // 2], "garbage.pt": b"not a checkpoint at all"}
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ConfigError, match=rf"{name}: .*truncated or corrupted") as e:
+            load_model(tmp_path / name)
+        assert e.value.__cause__ is None and e.value.__suppress_context__
+    torch.save({"weights": {}}, tmp_path / "foreign.pt")
+    with pytest.raises(ConfigError, match="not an mpd model checkpoint"):
+        load_model(tmp_path / "foreign.pt")
+    with pytest.raises(ConfigError, match="not found"):
+        load_model(tmp_path / "missing.pt")
+
+
+def test_identity_changes_with_every_setting():
+    base = dict(
+        dataset_hash="d",
+        kind="diffusion",
+        parametrization="bspline",
+        parametrization_settings={"n": 16},
+        model_spec=TINY,
+        training_spec=tiny_training(),
+        seed=0,
+    )
+    variants = [
+        dict(dataset_hash="e"),
+        dict(kind="cvae"),
+        dict(parametrization="waypoints"),
+        dict(parametrization_settings={"n": 17}),
+        dict(model_spec=dataclasses.replace(TINY, context_dim=32)),
+        dict(model_spec=dataclasses.replace(TINY, unet_dim_mults=[1, 2, 4])),
+        dict(training_spec=tiny_training(steps=41)),
+        dict(training_spec=tiny_training(lr=2e-3)),
+        dict(seed=1),
+    ]
+    ids = {model_identity(**base)} | {model_identity(**{**base, **v}) for v in variants}
+    assert len(ids) == len(variants) + 1
+    assert model_identity(**base) == model_identity(**base)
+
+
+def test_training_arrays_reject_bad_input():
+    good = toy_arrays()
+    with pytest.raises(ValueError, match=r"context\['q_goal'\].*shape"):
+        dataclasses.replace(good, context={"q_start": good.context["q_start"], "q_goal": np.zeros((16, 3))})
+    with pytest.raises(ValueError, match="match no context kind"):
+        dataclasses.replace(good, context={"q_start": good.context["q_start"]})
+    with pytest.raises(ValueError, match="no training samples"):
+        dataclasses.replace(good, split=np.ones(16, np.int8))
+    with pytest.raises(ValueError, match="NaN"):
+        dataclasses.replace(good, x=np.full_like(good.x, np.nan))
+    with pytest.raises(ValueError, match="may only contain"):
+        dataclasses.replace(good, parametrization="b/spline")
+    with pytest.raises(ValueError, match="unknown model kind"):
+        train_model(good, "gan", TINY, tiny_training(), progress=False)
+
+
+def test_build_network_kinds():
+    assert isinstance(build_network("diffusion", 2, 8, "goal_joint_position", TINY), DiffusionModel)
+    assert isinstance(build_network("cvae", 2, 8, "goal_joint_position", TINY), CVAE)
