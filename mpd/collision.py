@@ -71,12 +71,18 @@ class CollisionChecker:
             out.append((d - r).min(-1).values)
         return torch.cat(out).reshape(shape)
 
-    def self_clearance(self, q: torch.Tensor) -> torch.Tensor:
+    def self_clearance(self, q: torch.Tensor, chunk: int = 1 << 14) -> torch.Tensor:
         """Smallest ||c_i - c_j|| - r_i - r_j over the self-collision pairs (+inf without pairs), shape (...)."""
         if not self.self_collision or len(self.robot.self_pairs) == 0:
             return torch.full(q.shape[:-1], float("inf"), dtype=q.dtype, device=q.device)
-        d = self.robot.self_collision_distance(self.robot.sphere_centres(q))
-        return d.min(-1).values
+        # chunked like env_clearance: 100k Panda configurations x 280 pairs would otherwise hold ~2 GB of pair
+        # differences at once
+        flat = q.reshape(-1, self.robot.dof)
+        out = []
+        for s in range(0, flat.shape[0], chunk):
+            d = self.robot.self_collision_distance(self.robot.sphere_centres(flat[s : s + chunk]))
+            out.append(d.min(-1).values)
+        return torch.cat(out).reshape(q.shape[:-1])
 
     def configs(self, q: torch.Tensor, margin: float | None = None) -> Validity:
         """Validity of configurations q (..., dof)."""

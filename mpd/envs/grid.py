@@ -54,7 +54,7 @@ class GridSDF:
         u = (xc - lo) / self.cell
         if mode == "nearest":
             idx = torch.minimum(u.round().long(), nmax)
-            vals = packed[(idx * strides).sum(-1)]
+            vals = _rows(packed, (idx * strides).sum(-1))
         elif mode == "trilinear":
             f = torch.minimum(u.floor().long(), nmax - 1)
             w = u - f
@@ -62,7 +62,12 @@ class GridSDF:
             for corner in range(1 << self.dim):
                 bits = torch.tensor([(corner >> k) & 1 for k in range(self.dim)], device=x.device)
                 wc = torch.where(bits.bool(), w, 1 - w).prod(-1, keepdim=True)
-                vals = vals + wc * packed[((f + bits) * strides).sum(-1)]
+                vals = vals + wc * _rows(packed, ((f + bits) * strides).sum(-1))
         else:
             raise ValueError(f"unknown grid lookup mode {mode!r} (nearest, trilinear)")
         return vals[..., 0] + (x - xc).norm(dim=-1), vals[..., 1:]
+
+
+def _rows(packed: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """packed[idx] for an index tensor of any shape (index_select: 2-3x faster than indexing on CPU)."""
+    return packed.index_select(0, idx.reshape(-1)).reshape(*idx.shape, packed.shape[1])

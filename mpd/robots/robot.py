@@ -115,7 +115,9 @@ class Robot:
         """(..., dof) -> (..., S, task_dim)."""
         shape = q.shape[:-1]
         kin = self.chain.forward(q.reshape(-1, self.dof), points=True, ee=False)
-        return kin.points[..., : self.task_dim].reshape(*shape, self.n_spheres, self.task_dim)
+        # contiguous: kin.points may be a batch-last view, on which the norms and gathers of the validity
+        # checks (self-collision pairs, grid lookups) run 10-15x slower than the copy costs
+        return kin.points[..., : self.task_dim].reshape(*shape, self.n_spheres, self.task_dim).contiguous()
 
     def ee_pose(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end-effector link (3-D even for planar robots)."""
@@ -147,7 +149,8 @@ class Robot:
             return centres.new_zeros(*centres.shape[:-2], 0)
         i, j = self.self_pairs[:, 0].to(centres.device), self.self_pairs[:, 1].to(centres.device)
         r = self.sphere_radii.to(centres)
-        d = (centres[..., i, :] - centres[..., j, :]).norm(dim=-1)
+        # index_select: 2-3x faster than advanced indexing of a middle dimension on CPU
+        d = (centres.index_select(-2, i) - centres.index_select(-2, j)).norm(dim=-1)
         return d - r[i] - r[j]
 
 

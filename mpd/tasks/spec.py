@@ -7,6 +7,8 @@ from typing import Literal
 
 import numpy as np
 
+from mpd.schema import ConfigError
+
 
 @dataclass(frozen=True)
 class ObjectSpec:
@@ -22,19 +24,21 @@ class ObjectSpec:
     def validate(self) -> None:
         if self.type == "sphere":
             if self.radius is None or self.radius <= 0:
-                raise ValueError("a sphere needs a positive radius")
+                raise ConfigError(None, "radius", f"a sphere needs a positive radius, got {self.radius}")
             if self.size is not None or self.orientation_wxyz is not None:
                 raise ValueError("a sphere takes no size or orientation_wxyz")
         else:
             if self.size is None or len(self.size) != len(self.centre) or min(self.size) <= 0:
-                raise ValueError(f"a box needs {len(self.centre)} positive side lengths in size")
+                n = len(self.centre)
+                raise ConfigError(None, "size", f"a box needs {n} positive side lengths, got {self.size}")
             if self.radius is not None:
                 raise ValueError("a box takes no radius")
             if self.orientation_wxyz is not None:
                 if len(self.centre) != 3:
                     raise ValueError("orientation_wxyz is for 3-D boxes")
                 if abs(np.linalg.norm(self.orientation_wxyz) - 1) > 1e-6:
-                    raise ValueError(f"orientation_wxyz {list(self.orientation_wxyz)} is not a unit quaternion")
+                    q = list(self.orientation_wxyz)
+                    raise ConfigError(None, "orientation_wxyz", f"{q} is not a unit quaternion")
 
 
 @dataclass(frozen=True)
@@ -49,13 +53,17 @@ class EnvironmentSpec:
     def validate(self) -> None:
         lo, hi = self.workspace
         if len(lo) != self.dim or len(hi) != self.dim or any(a >= b for a, b in zip(lo, hi)):
-            raise ValueError(f"workspace must be [[{self.dim} lows], [{self.dim} highs]] with low < high")
+            shape = f"[[{self.dim} lows], [{self.dim} highs]]"
+            raise ConfigError(None, "workspace", f"must be {shape} with low < high, got {[lo, hi]}")
         for key in ("obstacles", "extra_objects"):
             for i, o in enumerate(getattr(self, key)):
                 if len(o.centre) != self.dim:
-                    raise ValueError(f"{key}[{i}].centre has {len(o.centre)} coordinates, the environment is {self.dim}-D")
+                    n = len(o.centre)
+                    raise ConfigError(
+                        None, f"{key}[{i}].centre", f"has {n} coordinates, the environment is {self.dim}-D"
+                    )
         if self.sdf_cell_size <= 0:
-            raise ValueError("sdf_cell_size must be positive")
+            raise ConfigError(None, "sdf_cell_size", f"must be positive, got {self.sdf_cell_size}")
 
 
 @dataclass(frozen=True)
