@@ -66,7 +66,9 @@ def demo(session: nox.Session) -> None:
 def experiments(session: nox.Session) -> None:
     """Run an experiment spec: nox -s experiments -- SPEC [mpd run options]."""
     if not session.posargs:
-        session.error("usage: nox -s experiments -- SPEC [--only KEY=VALUE ...] [--executor ray] [--workers N]")
+        session.error(
+            "usage: nox -s experiments -- SPEC [--only KEY=VALUE ...] [--executor ray] [--workers N]"
+        )
     b = _venv(session, "dev,ray")
     session.run(str(b / "mpd"), "run", *session.posargs, external=True)
 
@@ -94,6 +96,17 @@ def benchmarks(session: nox.Session) -> None:
     out = ROOT / ".benchmarks" / "latest.json"
     out.parent.mkdir(exist_ok=True)
     session.run(
-        str(b / "python"), "-m", "pytest", "benchmarks", "-m", "benchmark", "--benchmark-only",
-        "--benchmark-enable", f"--benchmark-json={out}", "-p", "no:cacheprovider", *session.posargs, external=True,
+        str(b / "python"),
+        "-m",
+        "pytest",
+        "benchmarks",
+        "-m",
+        "benchmark",
+        "--benchmark-only",
+        "--benchmark-enable",
+        f"--benchmark-json={out}",
+        "-p",
+        "no:cacheprovider",
+        *session.posargs,
+        external=True,
     )

@@ -36,7 +36,8 @@ class LazyGroup(click.Group):
         try:
             return getattr(importlib.import_module(module), attr)
         except (ImportError, AttributeError) as e:  # a verb whose package is not built yet
-            return click.Command(name, help=f"(unavailable: {e})", callback=lambda: sys.exit(f"mpd {name}: unavailable: {e}"))
+            msg = f"{type(e).__name__}: {e}"
+            return click.Command(name, help=f"(unavailable: {msg})", callback=lambda: sys.exit(f"mpd {name}: {msg}"))
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

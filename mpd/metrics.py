@@ -18,9 +18,21 @@ from mpd.collision import CollisionChecker, Validity
 from mpd.trajectory import Dense
 
 METRICS = (
-    "success", "fraction_valid", "n_valid", "vendi", "ee_pos_error", "ee_ori_error_deg", "smoothness",
-    "path_length", "best_path_length", "best_ee_pos_error", "best_ee_ori_error_deg", "best_smoothness",
-    "collision_fraction", "self_collision_fraction", "limit_violation_fraction",
+    "success",
+    "fraction_valid",
+    "n_valid",
+    "vendi",
+    "ee_pos_error",
+    "ee_ori_error_deg",
+    "smoothness",
+    "path_length",
+    "best_path_length",
+    "best_ee_pos_error",
+    "best_ee_ori_error_deg",
+    "best_smoothness",
+    "collision_fraction",
+    "self_collision_fraction",
+    "limit_violation_fraction",
 )
 BEST_RULES = ("shortest", "ee_error")
 
@@ -122,4 +134,3 @@ def evaluate(
         if isinstance(v, float) and math.isinf(v):
             out[k] = nan
     return out, val, b
-

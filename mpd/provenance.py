@@ -23,7 +23,11 @@ def git_state() -> tuple[str, bool]:
         dirty = bool(
             subprocess.run(
                 ["git", "status", "--porcelain", "--untracked-files=no"],
-                cwd=REPO_ROOT, capture_output=True, text=True, timeout=5, check=True,
+                cwd=REPO_ROOT,
+                capture_output=True,
+                text=True,
+                timeout=5,
+                check=True,
             ).stdout.strip()
         )
         return commit, dirty
@@ -44,4 +48,9 @@ def library_versions() -> dict[str, str]:
 
 def provenance() -> dict[str, object]:
     commit, dirty = git_state()
-    return {"mpd_version": __version__, "git_commit": commit, "git_dirty": dirty, "libraries": library_versions()}
+    return {
+        "mpd_version": __version__,
+        "git_commit": commit,
+        "git_dirty": dirty,
+        "libraries": library_versions(),
+    }

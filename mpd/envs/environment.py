@@ -23,9 +23,13 @@ class Environment:
         self.extra_objects = bool(extra_objects)
         self.rotation_deg = float(rotation_deg)
         self.workspace = (np.asarray(spec.workspace[0], float), np.asarray(spec.workspace[1], float))
-        self.fixed = ObjectSet(self.dim, build_primitives(spec.obstacles, self.dim, rotation_deg), spec.box_corner_radius)
+        self.fixed = ObjectSet(
+            self.dim, build_primitives(spec.obstacles, self.dim, rotation_deg), spec.box_corner_radius
+        )
         self.extra = (
-            ObjectSet(self.dim, build_primitives(spec.extra_objects, self.dim, rotation_deg), spec.box_corner_radius)
+            ObjectSet(
+                self.dim, build_primitives(spec.extra_objects, self.dim, rotation_deg), spec.box_corner_radius
+            )
             if extra_objects and spec.extra_objects
             else None
         )
@@ -33,7 +37,8 @@ class Environment:
 
     def __repr__(self) -> str:
         n_extra = len(self.extra) if self.extra is not None else 0
-        return f"Environment({self.dim}-D, {len(self.fixed)} obstacles, {n_extra} extra, rotation {self.rotation_deg} deg)"
+        n_fixed = len(self.fixed)
+        return f"Environment({self.dim}-D, {n_fixed} obstacles, {n_extra} extra, rotation {self.rotation_deg} deg)"
 
     @property
     def primitives(self) -> list[tuple[Primitive, bool]]:

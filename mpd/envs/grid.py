@@ -23,7 +23,10 @@ class GridSDF:
         self.lo = np.asarray(lo, dtype=np.float64)
         self.shape = tuple(int(math.ceil((h - l) / cell - 1e-9)) + 1 for l, h in zip(self.lo, hi))
         self.hi = self.lo + (np.array(self.shape) - 1) * self.cell
-        axes = [torch.as_tensor(self.lo[k] + self.cell * np.arange(n), dtype=torch.float64) for k, n in enumerate(self.shape)]
+        axes = [
+            torch.as_tensor(self.lo[k] + self.cell * np.arange(n), dtype=torch.float64)
+            for k, n in enumerate(self.shape)
+        ]
         nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
         d, g = objects.sdf(nodes, grad=True)
         # one row per node: [sdf, grad_0, .., grad_D-1] so that a lookup is a single gather

@@ -64,7 +64,8 @@ class ObjectSet:
         key = (dtype, str(device))
         if key not in self._cache:
             self._cache[key] = tuple(
-                torch.as_tensor(a, dtype=dtype, device=device) for a in (self._sc, self._sr, self._bc, self._bh, self._br)
+                torch.as_tensor(a, dtype=dtype, device=device)
+                for a in (self._sc, self._sr, self._bc, self._bh, self._br)
             )
         return self._cache[key]
 
@@ -127,5 +128,9 @@ def build_primitives(specs, dim: int, rotation_deg: float = 0.0) -> list[Primiti
         else:
             r = quat_wxyz_to_matrix(o.orientation_wxyz) if o.orientation_wxyz is not None else np.eye(3)
             r = rz @ r[:dim, :dim]
-            prims.append(Primitive("box", c, half_size=np.asarray(o.size, dtype=np.float64) / 2, rotation=r, name=o.name))
+            prims.append(
+                Primitive(
+                    "box", c, half_size=np.asarray(o.size, dtype=np.float64) / 2, rotation=r, name=o.name
+                )
+            )
     return prims

@@ -13,7 +13,12 @@ from mpd.schema import file_sha256
 from mpd.tasks import Task, load_task
 
 # rough rates on a 2-core CPU, only for the dry run's estimate
-_PATHS_PER_S = {"RobotPointMass2D": 60.0, "RobotPlanar2Link": 20.0, "RobotPlanar4Link": 8.0, "RobotPanda": 2.0}
+_PATHS_PER_S = {
+    "RobotPointMass2D": 60.0,
+    "RobotPlanar2Link": 20.0,
+    "RobotPlanar4Link": 8.0,
+    "RobotPanda": 2.0,
+}
 _STEPS_PER_S = {2: 40.0, 3: 30.0, 4: 3.0}  # by U-Net depth: (1,2,4) small nets vs (1,2,4,8) Panda-sized
 
 
@@ -73,7 +78,9 @@ class TaskArtifacts:
 
     def summary(self) -> dict:
         return {
-            "task_hash": self.task_hash, "dataset_id": self.dataset_id, "dataset_hash": self.dataset_hash,
+            "task_hash": self.task_hash,
+            "dataset_id": self.dataset_id,
+            "dataset_hash": self.dataset_hash,
             "models": {f"{k}-{p}": m.identity for (k, p), m in self.models.items()},
             "n_contexts": int(len(self.contexts.q_start)),
         }
@@ -96,8 +103,12 @@ def _model_kinds(cells, task_name: str) -> set[tuple[str, str]]:
 def training_settings(task: Task, ts):
     spec = task.training(ts.profile)
     if ts.train_steps is not None:
-        spec = dataclasses.replace(spec, steps=ts.train_steps, checkpoint_every=min(spec.checkpoint_every, ts.train_steps),
-                                   val_every=min(spec.val_every, ts.train_steps))
+        spec = dataclasses.replace(
+            spec,
+            steps=ts.train_steps,
+            checkpoint_every=min(spec.checkpoint_every, ts.train_steps),
+            val_every=min(spec.val_every, ts.train_steps),
+        )
     return spec
 
 
@@ -119,8 +130,13 @@ def training_arrays(task: Task, dataset, parametrization: str):
     else:
         ctx["q_goal"] = dataset.q_goal.astype(np.float32)
     return TrainingArrays(
-        x=x, context=ctx, split=dataset.split.astype(np.int8), task_name=task.name, task_hash=task.file_hash,
-        dataset_hash=dataset.info["content_hash"], parametrization=parametrization,
+        x=x,
+        context=ctx,
+        split=dataset.split.astype(np.int8),
+        task_name=task.name,
+        task_hash=task.file_hash,
+        dataset_hash=dataset.info["content_hash"],
+        parametrization=parametrization,
         parametrization_settings=param.settings(),
     )
 
@@ -140,18 +156,40 @@ def needs(spec, cells) -> list[Need]:
         bad = chunk_states(rd)
         n = rd.definition.n_contexts
         rate = _PATHS_PER_S.get(task.robot.name, 2.0) * 2
-        out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate))
+        out.append(
+            Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate)
+        )
         content = _content_hash(rd) if not bad else None
         for kind, par in sorted(_model_kinds(cells, task_name)):
             train = training_settings(task, ts)
-            steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults) + (1 if task.robot.dof > 4 else 0), 5.0)
+            steps_s = _STEPS_PER_S.get(
+                len(task.spec.model.unet_dim_mults) + (1 if task.robot.dof > 4 else 0), 5.0
+            )
             if content is None:
-                out.append(Need("model", task_name, f"{kind}/{par} (after the dataset)", False, f"train {train.steps} steps", train.steps / steps_s))
+                out.append(
+                    Need(
+                        "model",
+                        task_name,
+                        f"{kind}/{par} (after the dataset)",
+                        False,
+                        f"train {train.steps} steps",
+                        train.steps / steps_s,
+                    )
+                )
                 continue
             param = make_parametrization(task, par)
             ident = model_identity(content, kind, par, param.settings(), task.spec.model, train, 0)
             exists = (model_dir(task_name, kind, par, ident) / "model.pt").exists()
-            out.append(Need("model", task_name, f"{kind}/{par} [{ident}]", exists, f"train {train.steps} steps", train.steps / steps_s))
+            out.append(
+                Need(
+                    "model",
+                    task_name,
+                    f"{kind}/{par} [{ident}]",
+                    exists,
+                    f"train {train.steps} steps",
+                    train.steps / steps_s,
+                )
+            )
     return out
 
 
@@ -179,7 +217,11 @@ def resolve(spec, cells, progress: bool = True) -> dict[str, TaskArtifacts]:
         art = TaskArtifacts(task.name, task.file_hash, ds.info["identity"], ds.info["content_hash"], contexts)
         for kind, par in sorted(_model_kinds(cells, task_name)):
             arrays = training_arrays(task, ds, par)
-            path = Path(train_model(arrays, kind, task.spec.model, training_settings(task, ts), seed=0, progress=progress))
+            path = Path(
+                train_model(
+                    arrays, kind, task.spec.model, training_settings(task, ts), seed=0, progress=progress
+                )
+            )
             import json
 
             meta = json.loads((path.parent / "meta.json").read_text())

@@ -6,6 +6,7 @@ folder, so a re-run skips finished cells and an interrupted run resumes where it
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -23,7 +24,6 @@ from mpd.experiments.spec import Cell, Spec
 from mpd.experiments.units import Unit, UnitResult, run_unit
 from mpd.paths import runs_dir
 from mpd.provenance import git_state, provenance
-from mpd.schema import stable_hash
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,11 @@ class Runner:
     def describe(self) -> str:
         """The dry run: cells, what would be generated or trained, and an estimate of the work."""
         p = self.plan()
-        lines = [f"spec {self.spec.name} ({self.spec.path}), hash {self.spec.hash}", f"run folder {self.run_dir}", ""]
+        lines = [
+            f"spec {self.spec.name} ({self.spec.path}), hash {self.spec.hash}",
+            f"run folder {self.run_dir}",
+            "",
+        ]
         lines.append(f"{len(p.cells)} cells:")
         for c in p.cells:
             lines.append(f"  {c.key}  {c.label()}")
@@ -171,9 +175,13 @@ class Runner:
     def _units(self, resolved: dict, store: RowStore) -> Iterable[Unit]:
         prov_base = provenance()
         base = {
-            "run_id": self.run_dir.name, "spec_name": self.spec.name, "spec_hash": self.spec.hash,
-            "git_commit": prov_base["git_commit"], "git_dirty": prov_base["git_dirty"],
-            "mpd_version": prov_base["mpd_version"], "torch_version": prov_base["libraries"].get("torch"),
+            "run_id": self.run_dir.name,
+            "spec_name": self.spec.name,
+            "spec_hash": self.spec.hash,
+            "git_commit": prov_base["git_commit"],
+            "git_dirty": prov_base["git_dirty"],
+            "mpd_version": prov_base["mpd_version"],
+            "torch_version": prov_base["libraries"].get("torch"),
             "libraries": ",".join(f"{k}={v}" for k, v in prov_base["libraries"].items()),
         }
         record_n = self.spec.data.record_contexts
@@ -183,19 +191,38 @@ class Runner:
             contexts = task_art.contexts
             done = store.done(cell.key)
             model = task_art.model_for(p["method"], p["parametrization"] or "bspline")
-            prov = dict(base, task_hash=task_art.task_hash, dataset_id=task_art.dataset_id,
-                        dataset_hash=task_art.dataset_hash, model_id=model.identity if model else "",
-                        model_hash=model.sha256 if model else "")
+            prov = dict(
+                base,
+                task_hash=task_art.task_hash,
+                dataset_id=task_art.dataset_id,
+                dataset_hash=task_art.dataset_hash,
+                model_id=model.identity if model else "",
+                model_hash=model.sha256 if model else "",
+            )
             for i in range(self.n_contexts(p["task"])):
                 if i in done:
                     continue
                 yield Unit(
-                    cell.key, p, cell.planner_overrides(), i, contexts.row(i), plan_seed(p["seed"], i),
-                    str(model.path) if model else None, self.device, record=i < record_n, provenance=prov,
+                    cell.key,
+                    p,
+                    cell.planner_overrides(),
+                    i,
+                    contexts.row(i),
+                    plan_seed(p["seed"], i),
+                    str(model.path) if model else None,
+                    self.device,
+                    record=i < record_n,
+                    provenance=prov,
                 )
 
     def _execute(self, units: list[Unit], store: RowStore, on_result) -> None:
-        bar = tqdm(total=len(units), desc=f"{self.spec.name}", unit="plan", disable=not self.progress, dynamic_ncols=True)
+        bar = tqdm(
+            total=len(units),
+            desc=f"{self.spec.name}",
+            unit="plan",
+            disable=not self.progress,
+            dynamic_ncols=True,
+        )
 
         def done(res: UnitResult) -> None:
             store.append(res.cell_key, res.row)
@@ -203,7 +230,9 @@ class Runner:
                 save_history(self.run_dir, res)
             if on_result is not None:
                 on_result(res)
-            bar.set_postfix_str(f"{res.row['task'][:12]}/{res.row['method']} ok={res.row['success']:.0f}", refresh=False)
+            bar.set_postfix_str(
+                f"{res.row['task'][:12]}/{res.row['method']} ok={res.row['success']:.0f}", refresh=False
+            )
             bar.update()
 
         try:
@@ -269,7 +298,8 @@ def save_history(run_dir: Path, res: UnitResult) -> Path:
     d.mkdir(exist_ok=True)
     path = d / f"{res.cell_key}-ctx{res.row['context_index']}.npz"
     tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, **res.history, row_key=np.array(stable_hash(res.row.get("cell_key"))))
+    meta = {k: v for k, v in res.row.items() if not k.startswith(("time_", "info_"))}
+    np.savez_compressed(tmp, **res.history, row_json=np.array(json.dumps(meta, default=str)))
     os.replace(tmp, path)
     return path
 

@@ -99,7 +99,11 @@ class Cell:
         return stable_hash(self.p, n=12)
 
     def planner_overrides(self) -> dict[str, Any]:
-        return {k[len(PLANNER_PREFIX) :]: v for k, v in self.params if k.startswith(PLANNER_PREFIX) and v is not None}
+        return {
+            k[len(PLANNER_PREFIX) :]: v
+            for k, v in self.params
+            if k.startswith(PLANNER_PREFIX) and v is not None
+        }
 
     def label(self) -> str:
         return ", ".join(f"{k}={v}" for k, v in self.params if v is not None)
@@ -171,7 +175,9 @@ def _validate(spec: SpecFile, path) -> None:
         if axis.startswith(PLANNER_PREFIX):
             name = axis[len(PLANNER_PREFIX) :]
             if name not in settings_fields:
-                raise ConfigError(path, f"axes.{axis}", f"unknown planner setting (allowed: {', '.join(settings_fields)})")
+                raise ConfigError(
+                    path, f"axes.{axis}", f"unknown planner setting (allowed: {', '.join(settings_fields)})"
+                )
             continue
         if axis not in AXES:
             allowed = ", ".join([*AXES, PLANNER_PREFIX + "<setting>"])
@@ -179,8 +185,14 @@ def _validate(spec: SpecFile, path) -> None:
         for v in values:
             if axis == "method" and v not in PLANNERS:
                 raise ConfigError(path, "axes.method", f"unknown method {v!r} (known: {', '.join(PLANNERS)})")
-            if axis in ("n_samples", "seed") and (not isinstance(v, int) or isinstance(v, bool) or (axis == "n_samples" and v < 1)):
-                raise ConfigError(path, f"axes.{axis}", f"{v!r} is not a {'positive ' if axis == 'n_samples' else ''}integer")
+            if axis in ("n_samples", "seed") and (
+                not isinstance(v, int) or isinstance(v, bool) or (axis == "n_samples" and v < 1)
+            ):
+                raise ConfigError(
+                    path,
+                    f"axes.{axis}",
+                    f"{v!r} is not a {'positive ' if axis == 'n_samples' else ''}integer",
+                )
             if axis == "rotation_deg" and (isinstance(v, bool) or not isinstance(v, int | float)):
                 raise ConfigError(path, "axes.rotation_deg", f"{v!r} is not a number")
             _check_value(path, axis, v, AXES[axis])
@@ -189,7 +201,9 @@ def _validate(spec: SpecFile, path) -> None:
             raise ConfigError(path, f"axes.{k}", "missing required axis")
     for t in spec.axes["task"]:
         if t not in spec.tasks:
-            raise ConfigError(path, f"tasks.{t}", "every task of axes.task needs a [tasks.\"NAME\"] table with its dataset")
+            raise ConfigError(
+                path, f"tasks.{t}", 'every task of axes.task needs a [tasks."NAME"] table with its dataset'
+            )
         try:
             load_task(t)
         except ConfigError as e:
@@ -207,7 +221,9 @@ def load_spec(name_or_path: str | Path) -> Spec:
         p = SPEC_DIR / f"{name_or_path}.toml"
         if not p.exists():
             known = ", ".join(sorted(x.stem for x in SPEC_DIR.glob("*.toml")))
-            raise ConfigError(name_or_path, "", f"unknown spec (known: {known}; or give a path to a .toml file)")
+            raise ConfigError(
+                name_or_path, "", f"unknown spec (known: {known}; or give a path to a .toml file)"
+            )
     raw = read_toml(p)
     data = from_dict(SpecFile, raw, source=p)
     _validate(data, p)
@@ -224,4 +240,8 @@ def _check_combinations(spec: Spec, path) -> None:
         planner = PLANNERS[p["method"]]
         problem = planner.unsupported(p)
         if problem:
-            raise ConfigError(path, "axes", f"impossible combination ({cell.label()}): {problem}; remove it with [[exclude]]")
+            raise ConfigError(
+                path,
+                "axes",
+                f"impossible combination ({cell.label()}): {problem}; remove it with [[exclude]]",
+            )

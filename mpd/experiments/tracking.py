@@ -15,8 +15,28 @@ from mpd.experiments.results import read_results
 from mpd.paths import runs_dir
 
 # the parameter columns that identify a cell, and the metrics compared between runs
-CELL_COLUMNS = ("task", "method", "parametrization", "preset", "sampler", "extra_objects", "rotation_deg", "n_samples", "seed", "overrides")
-SUMMARY_METRICS = ("success", "fraction_valid", "vendi", "ee_pos_error", "ee_ori_error_deg", "smoothness", "path_length", "time_total")
+CELL_COLUMNS = (
+    "task",
+    "method",
+    "parametrization",
+    "preset",
+    "sampler",
+    "extra_objects",
+    "rotation_deg",
+    "n_samples",
+    "seed",
+    "overrides",
+)
+SUMMARY_METRICS = (
+    "success",
+    "fraction_valid",
+    "vendi",
+    "ee_pos_error",
+    "ee_ori_error_deg",
+    "smoothness",
+    "path_length",
+    "time_total",
+)
 INPUT_HASHES = ("task_hash", "dataset_hash", "model_hash")
 
 
@@ -27,11 +47,17 @@ def list_runs() -> pd.DataFrame:
         if not m.exists():
             continue
         man = json.loads(m.read_text())
-        rows.append({
-            "run": d.name, "spec": man.get("spec_name"), "status": man.get("status"), "cells": len(man.get("cells", [])),
-            "rows": man.get("n_rows", 0), "commit": man.get("provenance", {}).get("git_commit", "")[:8],
-            "started": pd.to_datetime(man.get("started_at", 0), unit="s").strftime("%Y-%m-%d %H:%M"),
-        })
+        rows.append(
+            {
+                "run": d.name,
+                "spec": man.get("spec_name"),
+                "status": man.get("status"),
+                "cells": len(man.get("cells", [])),
+                "rows": man.get("n_rows", 0),
+                "commit": man.get("provenance", {}).get("git_commit", "")[:8],
+                "started": pd.to_datetime(man.get("started_at", 0), unit="s").strftime("%Y-%m-%d %H:%M"),
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -53,11 +79,14 @@ def show_run(run_dir: Path) -> str:
     prov = man.get("provenance", {})
     lines = [
         f"run {man['run_id']}  spec {man['spec_name']} ({man['spec_hash']})  status {man['status']}",
-        f"commit {prov.get('git_commit', '?')[:12]}{' (dirty)' if prov.get('git_dirty') else ''}  device {man.get('device')}",
+        f"commit {prov.get('git_commit', '?')[:12]}{' (dirty)' if prov.get('git_dirty') else ''}"
+        f"  device {man.get('device')}",
         f"rows {len(df)}  cells {len(man.get('cells', []))}",
     ]
     for task, a in (man.get("artifacts") or {}).items():
-        lines.append(f"  {task}: dataset {a.get('dataset_id')} ({a.get('dataset_hash', '')[:12]}), models {a.get('models')}")
+        lines.append(
+            f"  {task}: dataset {a.get('dataset_id')} ({a.get('dataset_hash', '')[:12]}), models {a.get('models')}"
+        )
     if len(df):
         with pd.option_context("display.width", 200, "display.max_columns", 20, "display.max_rows", 200):
             lines.append(cell_summary(df).to_string(index=False, float_format=lambda x: f"{x:.3f}"))
@@ -87,10 +116,12 @@ def compare_runs(run_a: Path, run_b: Path, tol: float = 0.0) -> tuple[pd.DataFra
     # input hashes per cell
     flags = []
     for _, r in table.iterrows():
-        sel = lambda df: df[np.logical_and.reduce([df[k].astype(str) == str(r[k]) for k in keys])]  # noqa: E731
-        ha, hb = sel(a), sel(b)
-        changed = [h for h in INPUT_HASHES if h in a and h in b and len(ha) and len(hb)
-                   and set(ha[h].astype(str)) != set(hb[h].astype(str))]
+        ha, hb = (df[np.logical_and.reduce([df[k].astype(str) == str(r[k]) for k in keys])] for df in (a, b))
+        changed = [
+            h
+            for h in INPUT_HASHES
+            if h in a and h in b and len(ha) and len(hb) and set(ha[h].astype(str)) != set(hb[h].astype(str))
+        ]
         flags.append(",".join(changed))
     table["inputs_changed"] = flags
     dcols = [c for c in table.columns if c.startswith("d_")]
@@ -111,7 +142,9 @@ def log_run_to_mlflow(run_dir: Path, tracking_uri: str | None = None) -> str | N
     try:
         import mlflow
     except ImportError:
-        warnings.warn("mlflow is not installed (pip install -e .[mlflow]); skipping MLflow logging", stacklevel=2)
+        warnings.warn(
+            "mlflow is not installed (pip install -e .[mlflow]); skipping MLflow logging", stacklevel=2
+        )
         return None
     warnings.filterwarnings("ignore", message=".*noload.*")
     run_dir = Path(run_dir)
@@ -120,12 +153,23 @@ def log_run_to_mlflow(run_dir: Path, tracking_uri: str | None = None) -> str | N
     mlflow.set_tracking_uri(uri)
     name = "mpd"
     exp = mlflow.get_experiment_by_name(name)
-    exp_id = exp.experiment_id if exp else mlflow.create_experiment(name, artifact_location=(runs_dir() / "mlflow-artifacts").as_uri())
+    exp_id = (
+        exp.experiment_id
+        if exp
+        else mlflow.create_experiment(name, artifact_location=(runs_dir() / "mlflow-artifacts").as_uri())
+    )
     df = read_results(run_dir)
     with mlflow.start_run(experiment_id=exp_id, run_name=man["run_id"]) as r:
         prov = man.get("provenance", {})
-        mlflow.log_params({"spec": man["spec_name"], "spec_hash": man["spec_hash"], "git_commit": prov.get("git_commit"),
-                           "cells": len(man.get("cells", [])), "device": man.get("device")})
+        mlflow.log_params(
+            {
+                "spec": man["spec_name"],
+                "spec_hash": man["spec_hash"],
+                "git_commit": prov.get("git_commit"),
+                "cells": len(man.get("cells", [])),
+                "device": man.get("device"),
+            }
+        )
         if len(df):
             summ = cell_summary(df)
             for _, row in summ.iterrows():

@@ -33,7 +33,9 @@ class Unit:
 class UnitResult:
     cell_key: str
     row: dict[str, Any]
-    history: dict[str, np.ndarray] | None = None  # when recorded: the batch at every step, and the final dense
+    history: dict[str, np.ndarray] | None = (
+        None  # when recorded: the batch at every step, and the final dense
+    )
 
 
 def _planner(unit: Unit):
@@ -48,14 +50,25 @@ def _planner(unit: Unit):
         task = load_task(p["task"])
         model = None
         if unit.model_path:
-            model = load_model(unit.model_path, expect_task=task.name, expect_parametrization=p["parametrization"], device=unit.device)
+            model = load_model(
+                unit.model_path,
+                expect_task=task.name,
+                expect_parametrization=p["parametrization"],
+                device=unit.device,
+            )
         overrides = dict(unit.overrides)
         if p.get("sampler"):
             overrides["sampler"] = p["sampler"]
         planner = make_planner(
-            p["method"], task, extra_objects=bool(p["extra_objects"]), rotation_deg=float(p["rotation_deg"] or 0.0),
-            preset=p["preset"], overrides=overrides, parametrization=p["parametrization"] or "bspline",
-            model=model, device=torch.device(unit.device),
+            p["method"],
+            task,
+            extra_objects=bool(p["extra_objects"]),
+            rotation_deg=float(p["rotation_deg"] or 0.0),
+            preset=p["preset"],
+            overrides=overrides,
+            parametrization=p["parametrization"] or "bspline",
+            model=model,
+            device=torch.device(unit.device),
         )
         from mpd.collision import CollisionChecker
 
@@ -78,16 +91,25 @@ def run_unit(unit: Unit) -> UnitResult:
     result = planner.plan(ctx, n, unit.plan_seed, record_history=unit.record)
     dense = result.dense
     metrics, validity, best = evaluate(
-        checker, _to_cpu64(dense), q_goal=None if task.ee_goal else ctx.q_goal.cpu().double(),
+        checker,
+        _to_cpu64(dense),
+        q_goal=None if task.ee_goal else ctx.q_goal.cpu().double(),
         ee_goal=None if not task.ee_goal else (ctx.ee_pos.cpu().double(), ctx.ee_rot.cpu().double()),
     )
-    row: dict[str, Any] = {"cell_key": unit.cell_key, "context_index": unit.context_index, "plan_seed": unit.plan_seed}
+    row: dict[str, Any] = {
+        "cell_key": unit.cell_key,
+        "context_index": unit.context_index,
+        "plan_seed": unit.plan_seed,
+    }
     row.update({k: v for k, v in unit.params.items()})
     row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(unit.overrides.items()))
     row.update(metrics)
     row["best_index"] = -1 if best is None else best
     for k, v in result.timings.items():
-        row[f"time_{k.replace('/', '_')}"] = float(v)
+        if k == "cost_gradient_calls":
+            row["n_cost_gradient_calls"] = int(v)
+        else:
+            row[f"time_{k.replace('/', '_')}"] = float(v)
     for k, v in result.info.items():
         row[f"info_{k}"] = v
     row.update(unit.provenance)
@@ -126,4 +148,9 @@ def run_unit(unit: Unit) -> UnitResult:
 def _to_cpu64(dense):
     from mpd.trajectory import Dense
 
-    return Dense(dense.q.detach().cpu().double(), dense.dq_ds.detach().cpu().double(), dense.ddq_ds2.detach().cpu().double(), dense.duration)
+    return Dense(
+        dense.q.detach().cpu().double(),
+        dense.dq_ds.detach().cpu().double(),
+        dense.ddq_ds2.detach().cpu().double(),
+        dense.duration,
+    )

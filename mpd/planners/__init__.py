@@ -53,15 +53,30 @@ def make_planner(
         if model.task_name != task.name:
             raise ValueError(f"model {model.path} was trained for {model.task_name!r}, not {task.name!r}")
         if model.parametrization != parametrization:
-            raise ValueError(f"model {model.path} uses the {model.parametrization!r} parametrization, not {parametrization!r}")
+            raise ValueError(
+                f"model {model.path} uses the {model.parametrization!r} parametrization, not {parametrization!r}"
+            )
         if cls.model_kind is not None and model.kind != cls.model_kind:
-            raise ValueError(f"planner {name!r} needs a {cls.model_kind} model, got a {model.kind} model ({model.path})")
+            raise ValueError(
+                f"planner {name!r} needs a {cls.model_kind} model, got a {model.kind} model ({model.path})"
+            )
     device = device or (model.device if model is not None else default_device())
     env = task.env(extra_objects, rotation_deg)
     return cls(task, env, settings, make_parametrization(task, parametrization), model=model, device=device)
 
 
 __all__ = [
-    "METHOD_ORDER", "PLANNERS", "PRESETS", "Context", "HistoryStep", "PlanResult", "Planner", "PlannerSettings",
-    "Timer", "get_planner_class", "make_planner", "planner_settings", "register",
+    "METHOD_ORDER",
+    "PLANNERS",
+    "PRESETS",
+    "Context",
+    "HistoryStep",
+    "PlanResult",
+    "Planner",
+    "PlannerSettings",
+    "Timer",
+    "get_planner_class",
+    "make_planner",
+    "planner_settings",
+    "register",
 ]

@@ -148,7 +148,12 @@ class Planner:
             from mpd.costs import CostFunction
 
             self.cost = CostFunction(
-                task, parametrization, env, preset=settings.cost_preset, sdf_mode=settings.sdf_mode, profile=True
+                task,
+                parametrization,
+                env,
+                preset=settings.cost_preset,
+                sdf_mode=settings.sdf_mode,
+                profile=True,
             )
         if model is not None:
             self.normalizer = model.x_normalizer
@@ -166,7 +171,12 @@ class Planner:
                 free = self.normalizer.unnormalize(x)
                 B = free.shape[0]
                 ee_b = None if ee is None else (ee[0].expand(B, 3), ee[1].expand(B, 3, 3))
-                res = self.cost(free, q_start.expand(B, -1), None if q_goal is None else q_goal.expand(B, -1), ee_goal=ee_b)
+                res = self.cost(
+                    free,
+                    q_start.expand(B, -1),
+                    None if q_goal is None else q_goal.expand(B, -1),
+                    ee_goal=ee_b,
+                )
                 g = self.normalizer.grad_to_normalized(res.grad)
             for k, v in (res.timings or {}).items():
                 timer.add(f"cost/{k}", v)

@@ -34,7 +34,9 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
     out = np.nonzero((q < lo) | (q > hi))[0]
     if len(out):
         j = int(out[0])
-        raise ConfigError(f"--{name}", "", f"joint {j} = {q[j]:g} is outside its limits [{lo[j]:g}, {hi[j]:g}]")
+        raise ConfigError(
+            f"--{name}", "", f"joint {j} = {q[j]:g} is outside its limits [{lo[j]:g}, {hi[j]:g}]"
+        )
     v = CollisionChecker(task, extra_objects, rotation_deg).configs(qt[None])
     if not bool(v.env_free[0]):
         raise ConfigError(f"--{name}", "", f"{list(np.round(q, 4))} is in collision with the environment")
@@ -44,29 +46,80 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
 
 @click.command("plan")
 @click.option("--task", "task_name", required=True, help="task name or task file")
-@click.option("--planner", "planner_name", default="mpd", show_default=True, help="mpd, dprior, dprior-cost, cvae, cvae-cost, gp-cost, rrtconnect-cost")
-@click.option("--n-samples", "--batch", "n_samples", type=int, default=100, show_default=True, help="trajectories per context")
-@click.option("--n-contexts", type=int, default=1, show_default=True, help="plan the first N evaluation contexts")
-@click.option("--start", default=None, help="start configuration, comma separated (instead of evaluation contexts)")
-@click.option("--goal", default=None, help="goal configuration (joint-goal tasks; for EE-goal tasks its FK is the goal pose)")
+@click.option(
+    "--planner",
+    "planner_name",
+    default="mpd",
+    show_default=True,
+    help="mpd, dprior, dprior-cost, cvae, cvae-cost, gp-cost, rrtconnect-cost",
+)
+@click.option(
+    "--n-samples",
+    "--batch",
+    "n_samples",
+    type=int,
+    default=100,
+    show_default=True,
+    help="trajectories per context",
+)
+@click.option(
+    "--n-contexts", type=int, default=1, show_default=True, help="plan the first N evaluation contexts"
+)
+@click.option(
+    "--start", default=None, help="start configuration, comma separated (instead of evaluation contexts)"
+)
+@click.option(
+    "--goal",
+    default=None,
+    help="goal configuration (joint-goal tasks; for EE-goal tasks its FK is the goal pose)",
+)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--extra-objects", is_flag=True, help="plan with the extra objects (unseen in training)")
-@click.option("--rotation", type=float, default=0.0, show_default=True, help="rotate the scene about the base z axis (deg)")
+@click.option(
+    "--rotation",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="rotate the scene about the base z axis (deg)",
+)
 @click.option("--preset", type=click.Choice(["official", "paper"]), default="official", show_default=True)
 @click.option("--sampler", type=click.Choice(["ddim", "ddpm"]), default="ddim", show_default=True)
-@click.option("--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True)
-@click.option("--model", "model_ref", default="latest", show_default=True, help="checkpoint path, model identity, or 'latest' for the task")
+@click.option(
+    "--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True
+)
+@click.option(
+    "--model",
+    "model_ref",
+    default="latest",
+    show_default=True,
+    help="checkpoint path, model identity, or 'latest' for the task",
+)
 @click.option("--set", "overrides", multiple=True, help="planner setting override, e.g. --set guide_lr=0.5")
 @click.option("--device", default=None)
 @click.option("--out", type=click.Path(file_okay=False), required=True, help="output folder")
-def plan(task_name, planner_name, n_samples, n_contexts, start, goal, seed, extra_objects, rotation, preset, sampler,
-         parametrization, model_ref, overrides, device, out):
+def plan(
+    task_name,
+    planner_name,
+    n_samples,
+    n_contexts,
+    start,
+    goal,
+    seed,
+    extra_objects,
+    rotation,
+    preset,
+    sampler,
+    parametrization,
+    model_ref,
+    overrides,
+    device,
+    out,
+):
     """Plan with one method; writes trajectories.npz, metrics.json and figures to OUT."""
-    import torch
 
     from mpd.collision import CollisionChecker
     from mpd.metrics import evaluate
-    from mpd.planners import Context, get_planner_class, make_planner
+    from mpd.planners import get_planner_class, make_planner
     from mpd.tasks import load_task
 
     # -- validate everything before any work ---------------------------------------------------------------
@@ -95,8 +148,17 @@ def plan(task_name, planner_name, n_samples, n_contexts, start, goal, seed, extr
     model = None
     if cls.model_kind is not None:
         model = find_model(task, cls.model_kind, parametrization, model_ref, device=device)
-    planner = make_planner(planner_name, task, extra_objects=extra_objects, rotation_deg=rotation, preset=preset,
-                           overrides=ov, parametrization=parametrization, model=model, device=device)
+    planner = make_planner(
+        planner_name,
+        task,
+        extra_objects=extra_objects,
+        rotation_deg=rotation,
+        preset=preset,
+        overrides=ov,
+        parametrization=parametrization,
+        model=model,
+        device=device,
+    )
     # -- contexts -----------------------------------------------------------------------------------------------
     if qs is not None:
         ctxs = [_context_from_goal(task, qs, qg)]
@@ -113,26 +175,58 @@ def plan(task_name, planner_name, n_samples, n_contexts, start, goal, seed, extr
         res = planner.plan(ctx.to(planner.device), n_samples, seed * 100_003 + i, record_history=(i == 0))
         d = res.dense
         dense64 = type(d)(d.q.cpu().double(), d.dq_ds.cpu().double(), d.ddq_ds2.cpu().double(), d.duration)
-        m, val, best = evaluate(checker, dense64, q_goal=None if ctx.q_goal is None else ctx.q_goal.double(),
-                                ee_goal=None if ctx.ee_pos is None else (ctx.ee_pos.double(), ctx.ee_rot.double()))
+        m, val, best = evaluate(
+            checker,
+            dense64,
+            q_goal=None if ctx.q_goal is None else ctx.q_goal.double(),
+            ee_goal=None if ctx.ee_pos is None else (ctx.ee_pos.double(), ctx.ee_rot.double()),
+        )
         summary.append({"context": i, **m, "best_index": best, "timings": res.timings, "info": res.info})
         arrays[f"ctx{i}_q"] = dense64.q.numpy().astype(np.float32)
         arrays[f"ctx{i}_control_points"] = res.control_points.cpu().numpy()
         arrays[f"ctx{i}_valid"] = val.valid.numpy()
-        click.echo(f"context {i}: success {m['success']:.0f}  valid {m['fraction_valid']:.2f}  vendi {m['vendi']:.1f}  "
-                   f"time {res.timings['total']:.3f} s")
+        click.echo(
+            f"context {i}: success {m['success']:.0f}  valid {m['fraction_valid']:.2f}  vendi {m['vendi']:.1f}  "
+            f"time {res.timings['total']:.3f} s"
+        )
         if i == 0:
             _figures(task, planner, ctx, res, val, out, extra_objects, rotation, checker)
     np.savez_compressed(out / "trajectories.npz", **arrays)
-    keys = ("success", "fraction_valid", "vendi", "ee_pos_error", "ee_ori_error_deg", "path_length", "smoothness")
-    mean = {k: float(np.nanmean([s[k] for s in summary])) if any(not np.isnan(s[k]) for s in summary) else float("nan") for k in keys}
+    keys = (
+        "success",
+        "fraction_valid",
+        "vendi",
+        "ee_pos_error",
+        "ee_ori_error_deg",
+        "path_length",
+        "smoothness",
+    )
+    mean = {
+        k: float(np.nanmean([s[k] for s in summary]))
+        if any(not np.isnan(s[k]) for s in summary)
+        else float("nan")
+        for k in keys
+    }
     mean["time_total"] = float(np.mean([s["timings"]["total"] for s in summary]))
-    doc = {"task": task.name, "planner": planner_name, "preset": preset, "n_samples": n_samples, "seed": seed,
-           "extra_objects": extra_objects, "rotation_deg": rotation, "model": str(model.path) if model else None,
-           "settings": planner.settings.__dict__, "mean": mean, "contexts": summary}
+    doc = {
+        "task": task.name,
+        "planner": planner_name,
+        "preset": preset,
+        "n_samples": n_samples,
+        "seed": seed,
+        "extra_objects": extra_objects,
+        "rotation_deg": rotation,
+        "model": str(model.path) if model else None,
+        "settings": planner.settings.__dict__,
+        "mean": mean,
+        "contexts": summary,
+    }
     (out / "metrics.json").write_text(json.dumps(doc, indent=2, default=float))
     click.echo("mean: " + "  ".join(f"{k} {v:.3f}" for k, v in mean.items()))
-    click.echo(f"wrote {out}/trajectories.npz, metrics.json, trajectories.png" + (", denoising.png" if (out / "denoising.png").exists() else ""))
+    click.echo(
+        f"wrote {out}/trajectories.npz, metrics.json, trajectories.png"
+        + (", denoising.png" if (out / "denoising.png").exists() else "")
+    )
 
 
 def find_model(task, kind: str, parametrization: str, ref: str, device=None):
@@ -143,15 +237,25 @@ def find_model(task, kind: str, parametrization: str, ref: str, device=None):
     p = Path(ref)
     if ref != "latest" and p.exists():
         return load_model(p, expect_task=task.name, expect_parametrization=parametrization, device=device)
-    metas = [m for m in list_models(task.name) if m.get("kind") == kind and m.get("parametrization") == parametrization]
+    metas = [
+        m
+        for m in list_models(task.name)
+        if m.get("kind") == kind and m.get("parametrization") == parametrization
+    ]
     if ref != "latest":
         metas = [m for m in metas if str(m.get("identity", "")).startswith(ref)]
     if not metas:
         what = "no trained" if ref == "latest" else f"no {ref!r}"
-        raise ConfigError("--model", "", f"{what} {kind} model with the {parametrization} parametrization for {task.name} "
-                          f"(train one: mpd train --task {task.name} --model {kind} --parametrization {parametrization})")
+        raise ConfigError(
+            "--model",
+            "",
+            f"{what} {kind} model with the {parametrization} parametrization for {task.name} "
+            f"(train one: mpd train --task {task.name} --model {kind} --parametrization {parametrization})",
+        )
     newest = max(metas, key=lambda m: Path(m["path"]).stat().st_mtime)
-    return load_model(newest["path"], expect_task=task.name, expect_parametrization=parametrization, device=device)
+    return load_model(
+        newest["path"], expect_task=task.name, expect_parametrization=parametrization, device=device
+    )
 
 
 def _context_from_goal(task, qs: np.ndarray, qg: np.ndarray):
@@ -185,8 +289,16 @@ def _figures(task, planner, ctx, res, val, out: Path, extra_objects, rotation, c
 
     env = task.env(extra_objects, rotation)
     d = res.dense
-    trajectory_figure(task, env, d.q.cpu().numpy(), d.dq_dt.cpu().numpy(), d.ddq_dt2.cpu().numpy(), val.valid.numpy(),
-                      out=out / "trajectories.png", title=f"{planner.label} - {task.name}")
+    trajectory_figure(
+        task,
+        env,
+        d.q.cpu().numpy(),
+        d.dq_dt.cpu().numpy(),
+        d.ddq_dt2.cpu().numpy(),
+        val.valid.numpy(),
+        out=out / "trajectories.png",
+        title=f"{planner.label} - {task.name}",
+    )
     if res.history and len(res.history) > 2:
         hist = res.history
         picks = sorted(set(np.linspace(0, len(hist) - 1, 5).round().astype(int)))
@@ -194,8 +306,11 @@ def _figures(task, planner, ctx, res, val, out: Path, extra_objects, rotation, c
         for k in picks:
             h = hist[k]
             B = h.free.shape[0]
-            dd = planner.param.dense(h.free, ctx.q_start.to(h.free).expand(B, -1),
-                                     None if ctx.q_goal is None else ctx.q_goal.to(h.free).expand(B, -1))
+            dd = planner.param.dense(
+                h.free,
+                ctx.q_start.to(h.free).expand(B, -1),
+                None if ctx.q_goal is None else ctx.q_goal.to(h.free).expand(B, -1),
+            )
             q = dd.q.detach().cpu().double()
             steps.append((f"{h.label} {h.step}", q.numpy(), checker.trajectories(q).valid.numpy()))
         denoising_figure(task, env, steps, out=out / "denoising.png")

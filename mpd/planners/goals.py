@@ -22,7 +22,14 @@ def ik_goals(task, env, ctx: Context, n: int, generator: torch.Generator, restar
     checker = CollisionChecker(task, env.extra_objects, env.rotation_deg)
     pos = ctx.ee_pos.detach().cpu().double()[None].expand(n, 3)
     rot = ctx.ee_rot.detach().cpu().double()[None].expand(n, 3, 3)
-    res = solve_ik(task.robot, pos, rot, n_restarts=restarts, generator=generator, valid=lambda q: checker.configs(q).valid)
+    res = solve_ik(
+        task.robot,
+        pos,
+        rot,
+        n_restarts=restarts,
+        generator=generator,
+        valid=lambda q: checker.configs(q).valid,
+    )
     q = res.q
     ok = res.success
     if ok.any() and not ok.all():

@@ -38,14 +38,21 @@ class RRTConnectCost(Planner):
                 from mpd.planners.goals import ik_goals
 
                 with timer("ik"):
-                    goals = ik_goals(self.task, self.env, ctx, n_samples, gen, restarts=self.settings.ik_restarts)
+                    goals = ik_goals(
+                        self.task, self.env, ctx, n_samples, gen, restarts=self.settings.ik_restarts
+                    )
             paths = []
             qs = ctx.q_start.detach().cpu().double().numpy()
             for i in range(n_samples):
                 qg = goals[i].detach().cpu().double().numpy()
                 with timer("rrt"):
                     path = plan_path(
-                        self.task, self.env, qs, qg, time_limit=self.settings.rrt_time_limit, seed=seed * 1000 + i
+                        self.task,
+                        self.env,
+                        qs,
+                        qg,
+                        time_limit=self.settings.rrt_time_limit,
+                        seed=seed * 1000 + i,
                     )
                 if path is None:
                     failures += 1

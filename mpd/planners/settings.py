@@ -4,15 +4,18 @@
 ``paper`` follows the paper's text (Algorithm 2, appendix B). Where they differ
 (``../shared/reference/README.md``, "Paper vs code" 1-3, 6, 17):
 
-| setting | official | paper |
-| --- | --- | --- |
-| guided DDIM steps | ceil(task guide_fraction x 15): 5 or 3 | the last i_cost = 3 |
-| DDIM eta | 0.5 (stochastic) | 0 (deterministic) |
-| quadratic schedule | duplicate 0 replaced by a random unused step each call, final 1->0 step done twice | 15 distinct steps |
-| guided update | eps~ = lambda eps - gamma clip(-grad C, -1, 1); the DDIM update re-applied to the iterate M times, each clipped to x_t +- delta | M gradient steps on the DDIM mean mu (lambda eps), clipped to mu +- delta |
-| cost gradient clipping | value clip to [-1, 1] | none |
-| cost forms and weights | task `[costs.weights]`, norms for velocity/acceleration | `[costs.paper_weights]`, squared norms |
-| "+Cost" baselines | 12 steps, lr 0.01, grad clip 1, delta 0.15 | 12 steps (= i_cost x M), lr = gamma, delta 0.15 |
+- guided DDIM steps: official ceil(task guide_fraction x 15) = 5 or 3; paper the last i_cost = 3.
+- DDIM eta: official 0.5 (stochastic); paper 0 (deterministic).
+- quadratic schedule: official replaces the duplicate 0 by a random unused step on each call and does the final
+  1 -> 0 step twice; paper 15 distinct steps.
+- guided update: official eps~ = lambda eps - gamma clip(-grad C, -1, 1), the DDIM update re-applied to the
+  iterate M times, each clipped to x_t +- delta; paper M gradient steps on the DDIM mean mu (of lambda eps),
+  clipped to mu +- delta.
+- cost gradient clipping: official value clip to [-1, 1]; paper none.
+- cost forms and weights: official task `[costs.weights]`, norms for velocity/acceleration; paper
+  `[costs.paper_weights]`, squared norms.
+- "+Cost" baselines: official 12 steps, lr 0.01, grad clip 1, delta 0.15; paper 12 steps (= i_cost x M),
+  lr = gamma, no clip, delta 0.15.
 
 Every field can be overridden per task (``[inference]`` in the task file) and per run (a spec axis such as
 ``planner.guide_lr``).
@@ -104,7 +107,10 @@ def planner_settings(task, preset: str = "official", **overrides) -> PlannerSett
         raise ValueError(f"unknown planner preset {preset!r} (known: {', '.join(PRESETS)})")
     s = PlannerSettings()
     if preset == "official":
-        s = s.replace(guide_fraction=task.spec.inference.guide_fraction, rrt_time_limit=task.spec.data.planner_time_limit)
+        s = s.replace(
+            guide_fraction=task.spec.inference.guide_fraction,
+            rrt_time_limit=task.spec.data.planner_time_limit,
+        )
     else:
         s = s.replace(**PAPER_OVERRIDES, rrt_time_limit=task.spec.data.planner_time_limit)
     return s.replace(**overrides) if overrides else s

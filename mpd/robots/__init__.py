@@ -4,4 +4,13 @@ from mpd.robots.chain import Kinematics, KinematicChain
 from mpd.robots.robot import Robot, get_robot, pk_serial_chain
 from mpd.robots.spec import RobotSpec, load_robot_spec, robot_files
 
-__all__ = ["Kinematics", "KinematicChain", "Robot", "RobotSpec", "get_robot", "load_robot_spec", "pk_serial_chain", "robot_files"]
+__all__ = [
+    "Kinematics",
+    "KinematicChain",
+    "Robot",
+    "RobotSpec",
+    "get_robot",
+    "load_robot_spec",
+    "pk_serial_chain",
+    "robot_files",
+]

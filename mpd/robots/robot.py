@@ -34,7 +34,9 @@ def _frames_from_joints(spec: RobotSpec) -> list[ChainFrame]:
     prev = spec.joints[0].parent
     for j in spec.joints:
         if j.parent != prev:
-            raise ValueError(f"joint {j.name!r}: parent {j.parent!r} does not follow {prev!r} (chains must be serial)")
+            raise ValueError(
+                f"joint {j.name!r}: parent {j.parent!r} does not follow {prev!r} (chains must be serial)"
+            )
         T = np.eye(4)
         T[:3, :3] = rpy_to_matrix(j.rpy)
         T[:3, 3] = j.xyz
@@ -91,7 +93,9 @@ class Robot:
         self.self_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2)
 
     def __repr__(self) -> str:
-        return f"Robot({self.name}, dof={self.dof}, spheres={self.n_spheres}, self_pairs={len(self.self_pairs)})"
+        return (
+            f"Robot({self.name}, dof={self.dof}, spheres={self.n_spheres}, self_pairs={len(self.self_pairs)})"
+        )
 
     # ------------------------------------------------------------------ limits and sampling
     def limits(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -120,7 +124,7 @@ class Robot:
         return kin.points[..., : self.task_dim].reshape(*shape, self.n_spheres, self.task_dim).contiguous()
 
     def ee_pose(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end-effector link (3-D even for planar robots)."""
+        """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end-effector link (3-D, also for planar arms)."""
         shape = q.shape[:-1]
         kin = self.chain.forward(q.reshape(-1, self.dof), points=False, ee=True)
         return kin.ee_pos.reshape(*shape, 3), kin.ee_rot.reshape(*shape, 3, 3)

@@ -92,7 +92,11 @@ class RobotSpec:
             raise ValueError("give exactly one of [urdf] or [[joints]]")
         dof = sum(j.type != "fixed" for j in self.joints) if self.joints else len(self.limits.position)
         if len(self.limits.position) != dof:
-            raise ConfigError(None, "limits.position", f"expected {dof} [lower, upper] pairs, got {len(self.limits.position)}")
+            raise ConfigError(
+                None,
+                "limits.position",
+                f"expected {dof} [lower, upper] pairs, got {len(self.limits.position)}",
+            )
         for i, (lo, hi) in enumerate(self.limits.position):
             if not lo < hi:
                 raise ValueError(f"limits.position[{i}]: lower {lo} is not below upper {hi}")

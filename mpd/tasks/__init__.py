@@ -3,4 +3,13 @@
 from mpd.tasks.spec import CostWeights, TaskSpec, TrainingSpec
 from mpd.tasks.task import Task, list_tasks, load_task, resolve_task_path, task_files
 
-__all__ = ["CostWeights", "Task", "TaskSpec", "TrainingSpec", "list_tasks", "load_task", "resolve_task_path", "task_files"]
+__all__ = [
+    "CostWeights",
+    "Task",
+    "TaskSpec",
+    "TrainingSpec",
+    "list_tasks",
+    "load_task",
+    "resolve_task_path",
+    "task_files",
+]

@@ -105,7 +105,9 @@ class TrajectorySpec:
         if self.duration <= 0:
             raise ValueError("trajectory.duration must be positive")
         if self.n_control_points < self.bspline_degree + 1 or self.n_control_points < 7:
-            raise ValueError(f"trajectory.n_control_points must be at least max(degree + 1, 7), got {self.n_control_points}")
+            raise ValueError(
+                f"trajectory.n_control_points must be at least max(degree + 1, 7), got {self.n_control_points}"
+            )
         if self.n_points < 2:
             raise ValueError("trajectory.n_points must be at least 2")
 

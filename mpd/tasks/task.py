@@ -27,7 +27,9 @@ class Task:
             raise ConfigError(self.path, "robot.name", e.detail) from None
         if self.robot.task_dim != spec.environment.dim:
             raise ConfigError(
-                self.path, "robot.name", f"{self.robot.name} moves in {self.robot.task_dim}-D, the environment is {spec.environment.dim}-D"
+                self.path,
+                "robot.name",
+                f"{self.robot.name} moves in {self.robot.task_dim}-D, the environment is {spec.environment.dim}-D",
             )
         self._envs: dict[tuple[bool, float], Environment] = {}
 
@@ -66,7 +68,9 @@ class Task:
     def training(self, profile: str) -> TrainingSpec:
         if profile not in self.spec.training:
             raise ConfigError(
-                self.path, f"training.{profile}", f"no such training profile (this task has: {', '.join(self.spec.training)})"
+                self.path,
+                f"training.{profile}",
+                f"no such training profile (this task has: {', '.join(self.spec.training)})",
             )
         return self.spec.training[profile]
 
@@ -87,7 +91,9 @@ def resolve_task_path(name_or_path: str | Path) -> Path:
         return p
     files = task_files()
     if str(name_or_path) not in files:
-        raise ConfigError(name_or_path, "", f"unknown task (known: {', '.join(files)}; or give a path to a .toml file)")
+        raise ConfigError(
+            name_or_path, "", f"unknown task (known: {', '.join(files)}; or give a path to a .toml file)"
+        )
     return files[str(name_or_path)]
 
 

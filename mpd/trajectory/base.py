@@ -74,7 +74,12 @@ class LinearTrajectory:
 
     def settings(self) -> dict:
         """What identifies this parametrization (goes into dataset and model hashes)."""
-        return {"name": self.name, "n_params": self.n_params, "n_points": self.n_points, "ee_goal": self.ee_goal}
+        return {
+            "name": self.name,
+            "n_params": self.n_params,
+            "n_points": self.n_points,
+            "ee_goal": self.ee_goal,
+        }
 
     def _t(self, dtype: torch.dtype, device) -> dict[str, torch.Tensor]:
         key = (dtype, str(device))
@@ -95,7 +100,9 @@ class LinearTrajectory:
         return self._cache[key]
 
     # -----------------------------------------------------------------------------------------------------------
-    def full(self, free: torch.Tensor, q_start: torch.Tensor, q_goal: torch.Tensor | None = None) -> torch.Tensor:
+    def full(
+        self, free: torch.Tensor, q_start: torch.Tensor, q_goal: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """All parameter rows W (B, n_params, dof) from the free rows (B, n_free, dof) and the context."""
         m = self._t(free.dtype, free.device)
         w = torch.einsum("ph,bhd->bpd", m["a_free"], free) + m["a_start"][None, :, None] * q_start[:, None, :]
@@ -129,15 +136,25 @@ class LinearTrajectory:
         ref = next(g for g in (g_q, g_dq, g_ddq) if g is not None)
         m = self._t(ref.dtype, ref.device)
         zero = torch.zeros_like(ref)
-        g = torch.cat([g_q if g_q is not None else zero, g_dq if g_dq is not None else zero,
-                       g_ddq if g_ddq is not None else zero], 1)  # (B, 3 n_points, dof)
+        g = torch.cat(
+            [
+                g_q if g_q is not None else zero,
+                g_dq if g_dq is not None else zero,
+                g_ddq if g_ddq is not None else zero,
+            ],
+            1,
+        )  # (B, 3 n_points, dof)
         return m["free_all_T"] @ g
 
     def _check(self, free, q_start, q_goal):
         if free.ndim != 3 or free.shape[1] != self.n_free:
-            raise ValueError(f"expected free parameters of shape (B, {self.n_free}, dof), got {tuple(free.shape)}")
+            raise ValueError(
+                f"expected free parameters of shape (B, {self.n_free}, dof), got {tuple(free.shape)}"
+            )
         if q_start.shape != (free.shape[0], free.shape[2]):
-            raise ValueError(f"q_start has shape {tuple(q_start.shape)}, expected {(free.shape[0], free.shape[2])}")
+            raise ValueError(
+                f"q_start has shape {tuple(q_start.shape)}, expected {(free.shape[0], free.shape[2])}"
+            )
         if not self.ee_goal and (q_goal is None or q_goal.shape != q_start.shape):
             raise ValueError("a joint-goal trajectory needs q_goal of the same shape as q_start")
 

@@ -45,7 +45,9 @@ def _recurse(t, N0, s, p, d, n0):
     inv_a = np.divide(1.0, a, out=np.zeros_like(a), where=a > 0)
     inv_b = np.divide(1.0, b, out=np.zeros_like(b), where=b > 0)
     if d == 0:
-        return (s[:, None] - t[None, :n]) * inv_a * low[:, :n] + (t[None, p + 1 : p + 1 + n] - s[:, None]) * inv_b * low[:, 1 : 1 + n]
+        return (s[:, None] - t[None, :n]) * inv_a * low[:, :n] + (
+            t[None, p + 1 : p + 1 + n] - s[:, None]
+        ) * inv_b * low[:, 1 : 1 + n]
     # N^(d)_{i,p} = p (N^(d-1)_{i,p-1} / a_i - N^(d-1)_{i+1,p-1} / b_i)
     return p * (inv_a * low[:, :n] - inv_b * low[:, 1 : 1 + n])
 
@@ -60,10 +62,20 @@ class BSplineTrajectory(LinearTrajectory):
 
     name = "bspline"
 
-    def __init__(self, n_control: int, degree: int = 5, n_points: int = 128, duration: float = 10.0, ee_goal: bool = False):
+    def __init__(
+        self,
+        n_control: int,
+        degree: int = 5,
+        n_points: int = 128,
+        duration: float = 10.0,
+        ee_goal: bool = False,
+    ):
         super().__init__(n_control, n_points, duration, ee_goal)
         if n_control < max(degree + 1, 7):
-            raise ValueError(f"a degree-{degree} B-spline with fixed boundary rows needs at least {max(degree + 1, 7)} control points")
+            raise ValueError(
+                f"a degree-{degree} B-spline with fixed boundary rows needs at least {max(degree + 1, 7)} control"
+                " points"
+            )
         self.degree = int(degree)
         self.knots = clamped_uniform_knots(n_control, degree)
         self.basis = bspline_basis(self.knots, degree, self.phase, 0)
@@ -104,8 +116,12 @@ class BSplineTrajectory(LinearTrajectory):
         for i, path in enumerate(paths):
             u = _chord_parameter(path)
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # splprep warns on nearly straight 2-D paths; the fit is still fine
-                (t, c, _k), _u = interpolate.splprep(list(path.T), u=u, k=self.degree, t=self.knots, task=-1, s=0)
+                warnings.simplefilter(
+                    "ignore"
+                )  # splprep warns on nearly straight 2-D paths; the fit is still fine
+                (t, c, _k), _u = interpolate.splprep(
+                    list(path.T), u=u, k=self.degree, t=self.knots, task=-1, s=0
+                )
             assert np.allclose(t[self.degree + 1 : -self.degree - 1], inner)
             w = np.stack(c, 1)[: self.n_params]
             w[:3] = path[0]
