@@ -124,7 +124,7 @@ class Robot:
         return kin.points[..., : self.task_dim].reshape(*shape, self.n_spheres, self.task_dim).contiguous()
 
     def ee_pose(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end-effector link (3-D, also for planar arms)."""
+        """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end effector (3-D, also for planar arms)."""
         shape = q.shape[:-1]
         kin = self.chain.forward(q.reshape(-1, self.dof), points=False, ee=True)
         return kin.ee_pos.reshape(*shape, 3), kin.ee_rot.reshape(*shape, 3, 3)
