@@ -1,0 +1,413 @@
+"""Dataset generation: contexts, OMPL paths and B-spline fits, chunk by chunk, in parallel and resumable.
+
+Each chunk (a fixed range of context indices) is computed by one worker process and written atomically
+(:mod:`mpd.data.storage`). Generation skips every chunk that is already finished and verified, so an
+interrupted run resumes where it stopped and never recomputes finished work. Results do not depend on the
+number of workers: context i is drawn from a stream seeded by (seed, i) and OMPL is reseeded per problem.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import queue as queue_mod
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from mpd.data.definition import GENERATOR_VERSION, ResolvedDefinition, load_definition
+from mpd.data.storage import (
+    clean_stale_temporaries,
+    content_hash,
+    read_chunk,
+    read_sidecar,
+    remove_chunk,
+    verify_chunk,
+    write_atomic,
+    write_chunk,
+)
+from mpd.provenance import provenance
+
+STATUSES = ("ok", "no_context", "invalid_start", "invalid_goal", "timeout", "post_check")
+POST_CHECK_ATTEMPTS = 3
+
+# ---------------------------------------------------------------------------------------------- worker side
+_PROGRESS = None  # a multiprocessing queue in pool workers: one message per finished context
+_CACHE: dict[str, tuple] = {}
+
+
+def _init_worker(progress) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    global _PROGRESS
+    _PROGRESS = progress
+
+
+def _tools(rd: ResolvedDefinition):
+    """Checker, sampler, planner, parametrization and ground-truth checker of a dataset, once per process."""
+    if rd.identity not in _CACHE:
+        from mpd.collision import CollisionChecker
+        from mpd.data.checkers import make_checker
+        from mpd.data.contexts import ContextSampler
+        from mpd.data.planning import JointSpacePlanner
+        from mpd.trajectory import make_parametrization
+
+        d, task = rd.definition, rd.task
+        checker = make_checker(task, d.checker.kind, rd.clearance, False, d.checker.self_pairs)
+        sampler = ContextSampler(task, checker, d.contexts.min_start_goal_distance, d.contexts.max_tries)
+        planner = JointSpacePlanner(checker, d.planner, task.spec.trajectory.n_points, store_dtype=np.float32)
+        _CACHE[rd.identity] = (
+            checker,
+            sampler,
+            planner,
+            make_parametrization(task, "bspline"),
+            CollisionChecker(task, extra_objects=False, margin=0.0),
+        )
+    return _CACHE[rd.identity]
+
+
+def compute_chunk(rd: ResolvedDefinition, i: int, progress=None) -> tuple[dict[str, np.ndarray], dict]:
+    """The arrays of chunk i and its run-dependent figures (times)."""
+    import torch
+
+    from mpd.data.contexts import ContextError, ee_goal_pose
+    from mpd.data.planning import problem_seed
+
+    d, task = rd.definition, rd.task
+    checker, sampler, planner, param, truth = _tools(rd)
+    start, stop = d.chunk_range(i)
+    n, dof, T, K = (
+        stop - start,
+        task.dof,
+        task.spec.trajectory.n_points,
+        task.spec.trajectory.n_control_points,
+    )
+    out = {
+        "context_id": np.arange(start, stop, dtype=np.int64),
+        "q_start": np.full((n, dof), np.nan),
+        "q_goal": np.full((n, dof), np.nan),
+        "source": np.zeros(n, dtype=np.int8),
+        "status": np.zeros(n, dtype=np.int8),
+        "success": np.zeros(n, dtype=bool),
+        "n_vertices": np.zeros(n, dtype=np.int16),
+        "path": np.full((n, T, dof), np.nan, dtype=np.float32),
+        "control_points": np.full((n, K, dof), np.nan, dtype=np.float32),
+        "fit_in_range": np.zeros(n, dtype=bool),
+        "fit_free": np.zeros(n, dtype=bool),
+    }
+    ctx_time, plan_time = np.zeros(n), np.zeros(n)
+    t_chunk, cpu_chunk = time.perf_counter(), time.process_time()
+    for k, idx in enumerate(range(start, stop)):
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([d.seed, idx])
+        try:
+            c = sampler.sample(rng)
+        except ContextError:
+            out["status"][k] = STATUSES.index("no_context")
+            ctx_time[k] = time.perf_counter() - t0
+            _report(progress, False)
+            continue
+        ctx_time[k] = time.perf_counter() - t0
+        out["q_start"][k], out["q_goal"][k], out["source"][k] = c.q_start, c.q_goal, c.source
+        r = planner.plan(c.q_start, c.q_goal, problem_seed(d.seed, idx))
+        plan_time[k] = r.time
+        for attempt in range(1, POST_CHECK_ATTEMPTS):
+            # a resampled state between two checked grid points failed the re-check (a path grazing the
+            # clearance): plan again with another seed rather than store an unchecked path
+            if r.status != "post_check":
+                break
+            r = planner.plan(c.q_start, c.q_goal, problem_seed(d.seed, idx, attempt))
+            plan_time[k] += r.time
+        out["status"][k] = STATUSES.index(r.status)
+        out["n_vertices"][k] = r.n_vertices
+        if r.success:
+            out["success"][k] = True
+            out["path"][k] = r.path
+        _report(progress, r.success)
+    ok = out["success"]
+    if ok.any():
+        # fit the stored (float32) paths and judge the stored (float32) control points
+        w = param.fit(out["path"][ok].astype(np.float64)).astype(np.float32)
+        out["control_points"][ok] = w
+        lo, hi = task.robot.q_min.numpy(), task.robot.q_max.numpy()
+        # the authors discard fits with a control point outside twice the joint range (centred on the range)
+        in_range = ((w >= lo - (hi - lo) / 2) & (w <= hi + (hi - lo) / 2)).all(axis=(1, 2))
+        out["fit_in_range"][ok] = in_range
+        dense = torch.as_tensor(param.basis @ w.astype(np.float64))
+        out["fit_free"][ok] = truth.trajectories(dense).collision_free.numpy()
+    if task.ee_goal:
+        has = ~np.isnan(out["q_goal"][:, 0])
+        out["ee_pos"] = np.full((n, 3), np.nan)
+        out["ee_rot"] = np.full((n, 3, 3), np.nan)
+        if has.any():
+            out["ee_pos"][has], out["ee_rot"][has] = ee_goal_pose(task, out["q_goal"][has])
+    meta = {
+        "contexts": [start, stop],
+        "successes": int(ok.sum()),
+        "context_time": np.round(ctx_time, 6).tolist(),
+        "plan_time": np.round(plan_time, 6).tolist(),
+        "wall_s": round(time.perf_counter() - t_chunk, 4),
+        # CPU time of this process: the per-core cost even when other processes compete for the cores
+        "cpu_s": round(time.process_time() - cpu_chunk, 4),
+    }
+    return out, meta
+
+
+def _report(progress, success: bool) -> None:
+    if progress is not None:
+        progress(success)
+
+
+def _work(rd: ResolvedDefinition, i: int) -> dict:
+    """Pool task: compute and write chunk i."""
+    q = _PROGRESS
+    arrays, meta = compute_chunk(rd, i, (lambda s: q.put(bool(s))) if q is not None else None)
+    return write_chunk(rd.data_dir, i, arrays, meta)
+
+
+# ---------------------------------------------------------------------------------------------- driver side
+def _lock_chunks(rd: ResolvedDefinition) -> dict[int, str]:
+    """Chunk hashes of the committed lock file, when it describes this identity."""
+    try:
+        lock = json.loads(rd.lock_path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return {}
+    if lock.get("identity") != rd.identity:
+        return {}
+    return {int(o["chunk"]): o["sha256"] for o in lock.get("outs", [])}
+
+
+def chunk_states(rd: ResolvedDefinition, use_lock: bool = True) -> dict[int, str]:
+    """Why each unfinished chunk is not usable ({} when the dataset is complete)."""
+    expected = _lock_chunks(rd) if use_lock else {}
+    bad = {}
+    for i in range(rd.definition.n_chunks):
+        ok, why = verify_chunk(rd.data_dir, i, expected.get(i))
+        if not ok:
+            bad[i] = why
+    return bad
+
+
+def generate(
+    name_or_path: str | Path | ResolvedDefinition,
+    workers: int | None = None,
+    progress: bool = True,
+    chunks: list[int] | None = None,
+    log=None,
+) -> dict:
+    """Generate (or finish) a dataset; returns its lock record (also written next to the definition).
+
+    Args:
+        workers: processes (default: all cores); 1 runs in this process.
+        chunks: only these chunk indices (for tests and partial runs); the lock is written when all are done.
+    """
+    rd = name_or_path if isinstance(name_or_path, ResolvedDefinition) else load_definition(name_or_path)
+    say = log or (lambda m: print(m, file=sys.stderr))
+    d = rd.definition
+    rd.data_dir.mkdir(parents=True, exist_ok=True)
+    clean_stale_temporaries(rd.data_dir)
+    write_atomic(rd.data_dir / "definition.json", (json.dumps(_definition_record(rd), indent=1) + "\n").encode())
+    todo = chunk_states(rd)
+    for i, why in sorted(todo.items()):
+        if why != "missing":
+            say(f"{rd.name}: {rd.data_dir.name}/chunk-{i:05d}: {why}; regenerating it")
+            remove_chunk(rd.data_dir, i)
+    pending = sorted(todo if chunks is None else set(todo) & set(chunks))
+    n_ctx = sum(d.chunk_range(i)[1] - d.chunk_range(i)[0] for i in pending)
+    if workers is None:
+        workers = os.cpu_count() or 1
+    workers = max(1, min(int(workers), len(pending) or 1))
+    t0 = time.perf_counter()
+    if pending:
+        done = d.n_contexts - sum(d.chunk_range(i)[1] - d.chunk_range(i)[0] for i in todo)
+        if done:
+            say(f"{rd.name}: resuming, {done} of {d.n_contexts} contexts already generated")
+        _run(rd, pending, workers, n_ctx, progress)
+    wall = time.perf_counter() - t0
+    if chunk_states(rd, use_lock=False):
+        return {}
+    lock, changed = _write_lock(rd, workers if pending else None, wall if pending else None)
+    if changed:
+        say(
+            f"{rd.name}: warning: chunks {changed} differ from the previous lock file of the same identity "
+            "(the generation did not reproduce them)"
+        )
+    return lock
+
+
+def _run(rd: ResolvedDefinition, pending: list[int], workers: int, n_ctx: int, progress: bool) -> None:
+    from tqdm import tqdm
+
+    bar = tqdm(total=n_ctx, desc=rd.name, unit="ctx", disable=not progress, smoothing=0.05, dynamic_ncols=True)
+    t0, paths = time.perf_counter(), [0]
+
+    def tick(success: bool) -> None:
+        paths[0] += bool(success)
+        bar.update(1)
+        el = time.perf_counter() - t0
+        bar.set_postfix_str(f"{paths[0] / max(el, 1e-9):.1f} paths/s", refresh=False)
+
+    try:
+        if workers == 1:
+            import torch
+
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                for i in pending:
+                    arrays, meta = compute_chunk(rd, i, tick)
+                    write_chunk(rd.data_dir, i, arrays, meta)
+            finally:
+                torch.set_num_threads(threads)
+        else:
+            _run_pool(rd, pending, workers, tick)
+    finally:
+        bar.close()
+
+
+def _run_pool(rd: ResolvedDefinition, pending: list[int], workers: int, tick) -> None:
+    ctx = mp.get_context("spawn")  # no fork: torch's thread pools and PyBullet do not survive it
+    q = ctx.Queue()
+    env_before = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = "1"  # read by torch when a worker imports it
+    ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(q,))
+    try:
+        futures = {ex.submit(_work, rd, i) for i in pending}
+        while futures:
+            finished, futures = wait(futures, timeout=0.2, return_when=FIRST_COMPLETED)
+            _drain(q, tick)
+            for f in finished:
+                f.result()  # re-raise a worker's error
+        _drain(q, tick)
+    except BaseException:
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    finally:
+        if env_before is None:
+            os.environ.pop("OMP_NUM_THREADS", None)
+        else:
+            os.environ["OMP_NUM_THREADS"] = env_before
+    ex.shutdown(wait=True)
+
+
+def _drain(q, tick) -> None:
+    while True:
+        try:
+            tick(q.get_nowait())
+        except queue_mod.Empty:
+            return
+
+
+def _repo_relative(path: Path) -> str:
+    from mpd.paths import REPO_ROOT
+
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(REPO_ROOT))
+    except ValueError:
+        return str(p)
+
+
+def _definition_record(rd: ResolvedDefinition) -> dict:
+    from mpd.data.definition import robot_file
+    from mpd.schema import file_sha256
+
+    rf = robot_file(rd.task)
+    return {
+        "name": rd.name,
+        "identity": rd.identity,
+        "generator_version": GENERATOR_VERSION,
+        "definition": asdict(rd.definition),
+        "task": {"name": rd.task.name, "path": _repo_relative(rd.task.path), "sha256": rd.task.file_hash},
+        "robot": {"name": rd.task.robot.name, "path": _repo_relative(rf), "sha256": file_sha256(rf)},
+    }
+
+
+def _figures(rd: ResolvedDefinition, sides: list[dict], workers: int | None, wall: float | None) -> dict:
+    d = rd.definition
+    status = np.zeros(len(STATUSES), dtype=np.int64)
+    ok = in_range = free = 0
+    for i in range(d.n_chunks):
+        c = read_chunk(rd.data_dir, i)
+        status += np.bincount(c["status"], minlength=len(STATUSES))
+        ok += int(c["success"].sum())
+        in_range += int(c["fit_in_range"].sum())
+        free += int((c["fit_free"] & c["fit_in_range"]).sum())
+    core_s = float(sum(s["wall_s"] for s in sides))
+    cpu_s = float(sum(s.get("cpu_s", 0.0) for s in sides))
+    plan_t = np.concatenate([s["plan_time"] for s in sides])
+    ctx_t = np.concatenate([s["context_time"] for s in sides])
+    fig = {
+        "contexts": d.n_contexts,
+        "successes": ok,
+        "failures": int(d.n_contexts - ok),
+        "failures_by_status": {s: int(n) for s, n in zip(STATUSES, status) if s != "ok" and n},
+        "fit_out_of_range": int(ok - in_range),
+        "paths": 2 * in_range,  # stored forward paths with a usable fit, and their reversed copies
+        "fit_collision_free_rate": round(free / in_range, 6) if in_range else None,
+        "core_seconds": round(core_s, 2),
+        "paths_per_s_per_core": round(ok / core_s, 4) if core_s else None,
+        "cpu_seconds": round(cpu_s, 2),
+        "paths_per_cpu_s": round(ok / cpu_s, 4) if cpu_s else None,
+        "plan_time_s": {
+            "median": round(float(np.median(plan_t)), 5),
+            "mean": round(float(plan_t.mean()), 5),
+            "max": round(float(plan_t.max()), 4),
+        },
+        "context_time_s_mean": round(float(ctx_t.mean()), 5),
+        "checker": {
+            "kind": d.checker.kind,
+            "clearance": rd.clearance,
+            "check_step": d.planner.check_step,
+            **({"self_pairs": d.checker.self_pairs} if d.checker.kind == "meshes" else {}),
+        },
+    }
+    if wall is not None:
+        fig["wall_time_s"] = round(wall, 2)
+        fig["workers"] = workers
+    return fig
+
+
+def _write_lock(rd: ResolvedDefinition, workers: int | None, wall: float | None) -> tuple[dict, list[int]]:
+    """Write the lock file (next to the definition and in the data directory); returns it and the chunks whose
+    hash differs from a previous lock of the same identity."""
+    d = rd.definition
+    sides = [read_sidecar(rd.data_dir, i) for i in range(d.n_chunks)]
+    try:
+        prev = json.loads(rd.lock_path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        prev = {}
+    same = prev.get("identity") == rd.identity
+    prev_outs = {o["chunk"]: o["sha256"] for o in prev.get("outs", [])} if same else {}
+    generated_now = wall is not None
+    if not generated_now and same:  # nothing generated now: keep the figures of the run that made the data
+        wall, workers = prev.get("figures", {}).get("wall_time_s"), prev.get("figures", {}).get("workers")
+    outs = [
+        {
+            "chunk": s["chunk"],
+            "path": s["path"],
+            "sha256": s["sha256"],
+            "size": s["size"],
+            "contexts": s["contexts"],
+        }
+        for s in sides
+    ]
+    lock = _definition_record(rd) | {
+        "data_dir": f"datasets/{rd.data_dir.name}",
+        "outs": outs,
+        "content_hash": content_hash([o["sha256"] for o in outs]),
+        "figures": _figures(rd, sides, workers, wall),
+        "provenance": provenance() if generated_now or not same else prev.get("provenance", provenance()),
+    }
+    text = (json.dumps(lock, indent=1) + "\n").encode()
+    write_atomic(rd.data_dir / "lock.json", text)
+    rd.lock_path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(rd.lock_path, text)
+    changed = [o["chunk"] for o in outs if o["chunk"] in prev_outs and prev_outs[o["chunk"]] != o["sha256"]]
+    return lock, changed

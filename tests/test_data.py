@@ -1,0 +1,250 @@
+"""Datasets: reproducible bytes, verified and resumable chunks, valid paths, evaluation contexts, errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mpd.data.checkers import SphereChecker, make_checker, path_valid
+from mpd.data.contexts import evaluation_contexts
+from mpd.data.dataset import load_dataset
+from mpd.data.definition import load_definition
+from mpd.data.generate import chunk_states, generate
+from mpd.data.storage import chunk_name, sidecar_name
+from mpd.schema import ConfigError
+from mpd.tasks import load_task
+
+TINY = """name = "{name}"
+task = "{task}"
+n_contexts = {n}
+chunk_size = {chunk}
+seed = {seed}
+"""
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _define(
+    directory: Path,
+    name: str,
+    task: str = "EnvSimple2D-RobotPointMass2D",
+    n: int = 12,
+    chunk: int = 4,
+    seed: int = 7,
+) -> Path:
+    directory.mkdir(parents=True, exist_ok=True)
+    p = directory / f"{name}.toml"
+    p.write_text(TINY.format(name=name, task=task, n=n, chunk=chunk, seed=seed))
+    return p
+
+
+def _chunk_bytes(rd) -> list[bytes]:
+    return [(rd.data_dir / chunk_name(i)).read_bytes() for i in range(rd.definition.n_chunks)]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """A tiny EnvSimple2D dataset generated once in its own cache (one process)."""
+    root = tmp_path_factory.mktemp("ref")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("MPD_CACHE", str(root / "cache"))
+    try:
+        path = _define(root / "defs", "tiny")
+        lock = generate(path, workers=1, progress=False)
+        ref_bytes = _chunk_bytes(load_definition(path))
+    finally:
+        mp.undo()
+    return path, lock, ref_bytes, root / "cache"
+
+
+def test_same_seed_same_bytes_any_worker_count(reference, tmp_path, monkeypatch):
+    path, lock, ref_bytes, _ = reference
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    p2 = _define(tmp_path / "defs", "tiny")
+    lock2 = generate(p2, workers=2, progress=False)  # a process pool: results must not depend on it
+    assert lock2["identity"] == lock["identity"]
+    assert lock2["content_hash"] == lock["content_hash"]
+    assert _chunk_bytes(load_definition(p2)) == ref_bytes
+    assert [o["sha256"] for o in lock2["outs"]] == [o["sha256"] for o in lock["outs"]]
+    assert set(lock2["outs"][0]) >= {"path", "sha256", "size"}
+    assert lock2["figures"]["contexts"] == 12 and lock2["figures"]["workers"] == 2
+    # another seed is another dataset
+    p3 = _define(tmp_path / "defs3", "tiny", seed=8)
+    assert load_definition(p3).identity != lock["identity"]
+
+
+def test_truncated_chunk_detected_and_regenerated(reference, tmp_path, monkeypatch, capsys):
+    _, lock, ref_bytes, _ = reference
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    p = _define(tmp_path / "defs", "tiny")
+    generate(p, workers=1, progress=False)
+    rd = load_definition(p)
+    f = rd.data_dir / chunk_name(1)
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+    assert "truncated" in chunk_states(rd)[1]
+    ds = load_dataset(p, progress=False)
+    err = capsys.readouterr().err
+    assert "chunk-00001" in err and "regenerating" in err
+    assert _chunk_bytes(rd) == ref_bytes
+    assert ds.info["content_hash"] == lock["content_hash"]
+
+
+def test_resume_at_chunk_granularity(reference, tmp_path, monkeypatch):
+    _, lock, ref_bytes, _ = reference
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    p = _define(tmp_path / "defs", "tiny")
+    generate(p, workers=1, progress=False, chunks=[0, 2])  # an interrupted run: chunks 0 and 2 finished
+    rd = load_definition(p)
+    assert sorted(chunk_states(rd)) == [1]
+    before = {i: (rd.data_dir / chunk_name(i)).stat() for i in (0, 2)}
+    # chunk 1 was being written when the process died: a temporary file and an archive without its sidecar
+    (rd.data_dir / f"{chunk_name(1)}.tmp-999999999").write_bytes(b"partial")
+    (rd.data_dir / chunk_name(1)).write_bytes(ref_bytes[1][:100])
+    lock2 = generate(p, workers=1, progress=False)
+    for i, st in before.items():  # finished chunks are never recomputed
+        now = (rd.data_dir / chunk_name(i)).stat()
+        assert (now.st_ino, now.st_mtime_ns) == (st.st_ino, st.st_mtime_ns)
+    assert not list(rd.data_dir.glob("*.tmp-*"))
+    assert lock2["content_hash"] == lock["content_hash"]
+
+
+def test_resume_after_killing_a_real_run(tmp_path, monkeypatch):
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    p = _define(tmp_path / "defs", "killed", task="EnvPlanar2Link-RobotPlanar2Link", n=30, chunk=3)
+    rd_dir = tmp_path / "cache" / "datasets"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpd.cli", "data", "generate", str(p), "--workers", "1", "-q"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and not list(rd_dir.glob("*/chunk-0000[0-9].json")):
+            time.sleep(0.02)
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    rd = load_definition(p)
+    finished = [i for i in range(rd.definition.n_chunks) if i not in chunk_states(rd)]
+    assert finished, "the killed run finished no chunk"
+    stats = {i: (rd.data_dir / sidecar_name(i)).stat().st_mtime_ns for i in finished}
+    lock = generate(p, workers=1, progress=False)
+    assert lock and not chunk_states(rd)
+    assert all((rd.data_dir / sidecar_name(i)).stat().st_mtime_ns == t for i, t in stats.items())
+
+
+@pytest.mark.parametrize(
+    "task_name, n",
+    [
+        ("EnvSimple2D-RobotPointMass2D", 12),
+        ("EnvPlanar4Link-RobotPlanar4Link", 6),
+        ("EnvWarehouse-RobotPanda", 3),
+    ],
+)
+def test_stored_paths_valid_and_dataset_layout(task_name, n, reference, tmp_path, monkeypatch):
+    if task_name.startswith("EnvSimple2D"):
+        path = reference[0]
+        monkeypatch.setenv("MPD_CACHE", str(reference[3]))
+    else:
+        monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+        path = _define(tmp_path / "defs", "tiny", task=task_name, n=n, chunk=n)
+    rd = load_definition(path)
+    ds = load_dataset(path, progress=False)
+    task, d = rd.task, rd.definition
+    checker = make_checker(task, d.checker.kind, rd.clearance)
+    fwd = ~ds.reversed
+    assert fwd.sum() == ds.info["figures"]["successes"] - ds.info["figures"]["fit_out_of_range"]
+    for q in ds.paths[fwd]:  # every stored path is valid at the checker's resolution
+        assert path_valid(checker, q.astype(np.float64), d.planner.check_step)
+    # the reversed copies: same context, swapped ends, reversed path and control points, same split
+    f, r = np.nonzero(fwd)[0], np.nonzero(~fwd)[0]
+    assert np.array_equal(ds.context_id[f], ds.context_id[r]) and np.array_equal(ds.split[f], ds.split[r])
+    assert np.array_equal(ds.paths[r], ds.paths[f][:, ::-1])
+    assert np.array_equal(ds.control_points[r], ds.control_points[f][:, ::-1])
+    assert np.array_equal(ds.q_start[r], ds.q_goal[f]) and np.array_equal(ds.q_goal[r], ds.q_start[f])
+    assert np.allclose(ds.paths[:, 0], ds.q_start, atol=1e-6) and np.allclose(ds.paths[:, -1], ds.q_goal, atol=1e-6)
+    assert ds.control_points.shape[1:] == (task.spec.trajectory.n_control_points, task.dof)
+    if task.ee_goal:
+        p, rot = task.robot.ee_pose(torch.as_tensor(ds.q_goal))
+        assert np.allclose(ds.ee_pos, p.numpy()) and np.allclose(ds.ee_rot, rot.numpy())
+    else:
+        assert ds.ee_pos is None
+    assert len(ds.subset("train")) + len(ds.subset("val")) + len(ds.subset("test")) == len(ds)
+
+
+def test_evaluation_contexts_fixed(tmp_path, monkeypatch):
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    for name, n in [("EnvSimple2D-RobotPointMass2D", 5), ("EnvPlanar4Link-RobotPlanar4Link", 3)]:
+        task = load_task(name)
+        a = evaluation_contexts(task, n)
+        b = evaluation_contexts(task, n)  # from the cache
+        c = evaluation_contexts(task, n, refresh=True)  # recomputed
+        for x in (b, c):
+            assert np.array_equal(a.q_start, x.q_start) and np.array_equal(a.q_goal, x.q_goal)
+        both = SphereChecker(task, extra_objects=True, clearance=task.spec.collision.clearance)
+        assert both.valid(a.q_start).all() and both.valid(a.q_goal).all()
+        dist = np.linalg.norm(a.q_goal - a.q_start, axis=1)
+        assert (dist >= task.spec.context.min_start_goal_distance).all()
+        assert (a.ee_pos is not None) == task.ee_goal
+    assert len(list((tmp_path / "cache" / "contexts").glob("*.npz"))) == 2
+
+
+@pytest.mark.parametrize(
+    "body, field",
+    [
+        (
+            'name = "bad"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\nchunk_sise = 2\n',
+            "chunk_sise",
+        ),
+        ('name = "bad"\ntask = "EnvNoSuchTask"\nn_contexts = 4\n', "task"),
+        (
+            'name = "bad"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\n[planner]\ntime_limit = "x"\n',
+            "planner.time_limit",
+        ),
+        ('name = "other"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\n', "name"),
+        ('name = "bad"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 0\n', "n_contexts"),
+    ],
+)
+def test_bad_definitions_give_one_clear_line(tmp_path, body, field):
+    p = tmp_path / "bad.toml"
+    p.write_text(body)
+    with pytest.raises(ConfigError) as e:
+        load_definition(p)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{p}: {field}"), msg
+
+
+def test_cli_info_and_show(reference, tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from mpd.data.commands import data
+
+    path, lock, _, cache = reference
+    monkeypatch.setenv("MPD_CACHE", str(cache))
+    r = CliRunner().invoke(data, ["info", str(path)])
+    assert r.exit_code == 0, r.output
+    assert lock["content_hash"] in r.output and "fit_collision_free_rate" in r.output
+    r = CliRunner().invoke(data, ["info", str(path), "--json"])
+    assert json.loads(r.output)["identity"] == lock["identity"]
+    out = tmp_path / "paths.png"
+    r = CliRunner().invoke(data, ["show", str(path), "--out", str(out), "--n", "5"])
+    assert r.exit_code == 0, r.output
+    assert out.stat().st_size > 1000

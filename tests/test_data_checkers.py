@@ -1,0 +1,62 @@
+"""The generator's numpy sphere checker against CollisionChecker, grid-aligned resampling, OMPL planning."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mpd.collision import CollisionChecker
+from mpd.data.checkers import SphereChecker, edge_states, path_states, path_valid
+from mpd.data.planning import JointSpacePlanner, PlannerSettings, plan_path, resample_path
+from mpd.tasks import list_tasks, load_task
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("task_name", list_tasks())
+def test_sphere_checker_is_collision_checker(task_name):
+    task = load_task(task_name)
+    q = task.robot.random_q(3000, torch.Generator().manual_seed(0))
+    cl = task.spec.collision.clearance
+    for extra, rot, margin in [(False, 0.0, cl), (True, 0.0, 0.0), (True, 30.0, 0.01)]:
+        ref = CollisionChecker(task, extra, rot, margin=margin).configs(q)
+        env, slf = SphereChecker(task, extra, margin, rot).check(q.numpy())
+        assert np.array_equal(env, ref.env_free.numpy())
+        assert np.array_equal(slf, ref.self_free.numpy())
+
+
+def test_resample_on_the_checked_grid():
+    rng = np.random.default_rng(0)
+    step = 0.01
+    for _ in range(300):
+        v = np.cumsum(rng.normal(size=(int(rng.integers(2, 8)), 3)) * rng.uniform(0.002, 0.5), axis=0)
+        d = resample_path(v, 128, step)
+        assert d.shape == (128, 3) and np.allclose(d[[0, -1]], v[[0, -1]])
+        assert all(np.linalg.norm(d - x, axis=1).min() < 1e-12 for x in v)  # vertices kept
+        grid = np.concatenate([v[:1]] + [edge_states(v[i], v[i + 1], step) for i in range(len(v) - 1)])
+        if len(grid) >= 128:  # enough checked states: re-checking the result visits only those
+            re = path_states(d, step)
+            assert np.linalg.norm(re[:, None] - grid[None], axis=-1).min(1).max() < 1e-9
+
+
+def test_planning_is_seeded_and_valid():
+    task = load_task("EnvNarrowPassageDense2D-RobotPointMass2D")
+    checker = SphereChecker(task, clearance=task.spec.collision.clearance)
+    planner = JointSpacePlanner(checker, PlannerSettings(time_limit=5.0, check_step=0.01), 128)
+    qs, qg = np.array([-0.8, 0.1]), np.array([0.8, -0.05])  # through the narrow passage
+    a, b = planner.plan(qs, qg, seed=11), planner.plan(qs, qg, seed=11)
+    assert a.success and np.array_equal(a.path, b.path)
+    assert path_valid(checker, a.path, 0.01)
+    assert np.array_equal(a.path[0], qs) and np.array_equal(a.path[-1], qg)
+    blocked = planner.plan(np.array([0.35, 0.0]), qg, seed=1)  # the start is inside a disc
+    assert not blocked.success and blocked.status == "invalid_start"
+    p = plan_path(task, task.env(extra_objects=True), qs, qg, seed=2)
+    assert p is not None and p.shape == (128, 2)
+    assert path_valid(SphereChecker(task, True, task.spec.collision.clearance), p, 0.01)
