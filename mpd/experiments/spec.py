@@ -200,14 +200,14 @@ def _validate(spec: SpecFile, path) -> None:
         if k not in spec.axes:
             raise ConfigError(path, f"axes.{k}", "missing required axis")
     for t in spec.axes["task"]:
+        try:
+            load_task(t)
+        except ConfigError as e:
+            raise ConfigError(path, "axes.task", f"{t!r}: {e.detail}") from None
         if t not in spec.tasks:
             raise ConfigError(
                 path, f"tasks.{t}", 'every task of axes.task needs a [tasks."NAME"] table with its dataset'
             )
-        try:
-            load_task(t)
-        except ConfigError as e:
-            raise ConfigError(path, "axes.task", e.detail) from None
     for i, ex in enumerate(spec.exclude):
         for k in ex:
             if k not in spec.axes and k not in DEFAULTS and k not in ("n_samples", "seed"):

@@ -61,13 +61,18 @@ def list_runs() -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _key(v) -> str:
+    """A cell parameter as text; missing values (None/NaN: an axis a method does not use) as ''."""
+    return "" if v is None or (isinstance(v, float) and math.isnan(v)) or v is pd.NA else str(v)
+
+
 def cell_summary(df: pd.DataFrame) -> pd.DataFrame:
     """Mean of the summary metrics per cell (over contexts)."""
     cols = [c for c in CELL_COLUMNS if c in df.columns]
     mets = [m for m in SUMMARY_METRICS if m in df.columns]
     g = df.copy()
     for c in cols:
-        g[c] = g[c].astype(str)
+        g[c] = g[c].map(_key).astype(object)
     out = g.groupby(cols, dropna=False)[mets].mean()
     out["contexts"] = g.groupby(cols, dropna=False).size()
     return out.reset_index()
@@ -116,7 +121,7 @@ def compare_runs(run_a: Path, run_b: Path, tol: float = 0.0) -> tuple[pd.DataFra
     # input hashes per cell
     flags = []
     for _, r in table.iterrows():
-        ha, hb = (df[np.logical_and.reduce([df[k].astype(str) == str(r[k]) for k in keys])] for df in (a, b))
+        ha, hb = (df[np.logical_and.reduce([df[k].map(_key) == _key(r[k]) for k in keys])] for df in (a, b))
         changed = [
             h
             for h in INPUT_HASHES

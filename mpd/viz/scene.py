@@ -52,9 +52,7 @@ STYLE = {
     "xtick.labelsize": 7.5,
     "ytick.labelsize": 7.5,
     "axes.linewidth": 0.7,
-    "axes.prop_cycle": cycler(
-        color=["#0072B2", "#E69F00", "#009E73", "#CC79A7", "#56B4E9", "#D55E00", "#F0E442"]
-    ),
+    "axes.prop_cycle": cycler(color=["#0072B2", "#E69F00", "#009E73", "#CC79A7", "#56B4E9", "#D55E00", "#F0E442"]),
     "savefig.dpi": 200,
     "pdf.fonttype": 42,  # embed TrueType, so the text stays editable in a paper's PDF
     "ps.fonttype": 42,
@@ -334,9 +332,7 @@ def draw_paths(
     x = _ee_positions(task, q)  # (N, n, task_dim)
     three = _is_3d(ax)
     lines = Line3DCollection if three else LineCollection
-    groups = (
-        [(x, UNKNOWN, 0.8, 0.9)] if v is None else [(x[~v], INVALID, 0.55, 0.7), (x[v], VALID, 0.85, 1.0)]
-    )
+    groups = [(x, UNKNOWN, 0.8, 0.9)] if v is None else [(x[~v], INVALID, 0.55, 0.7), (x[v], VALID, 0.85, 1.0)]
     for seg, color, a, lw in groups:
         if len(seg):
             coll = lines(list(seg), colors=color, linewidths=lw, alpha=a, zorder=3)
@@ -452,9 +448,7 @@ def _unit(task, j: int) -> str:
     return "rad" if task.robot.chain.revolute[j] else "m"
 
 
-def trajectory_figure(
-    task, env, q, dq, ddq, valid, out: str | Path | None = None, title: str | None = None
-) -> Figure:
+def trajectory_figure(task, env, q, dq, ddq, valid, out: str | Path | None = None, title: str | None = None) -> Figure:
     """One context: task space (left) and joint position / velocity / acceleration against time (right), one
     line per sample and joint, dashed joint limits. q, dq, ddq: (B, n, dof) in time units."""
     q, dq, ddq = _np(q), _np(dq), _np(ddq)
@@ -528,11 +522,7 @@ def denoising_figure(
             ax = new_task_axes(fig, task, gs[0, i])
             draw_environment(ax, env)
             counts = draw_paths(ax, task, paths, valid, robot_goal=False, robot_alpha=0.45)
-            sub = (
-                f"{counts['valid']}/{counts['total']} valid"
-                if counts["valid"] >= 0
-                else f"{counts['total']} samples"
-            )
+            sub = f"{counts['valid']}/{counts['total']} valid" if counts["valid"] >= 0 else f"{counts['total']} samples"
             ax.set_title(f"{label}\n{sub}", fontsize=8.5)
             if i > 0 and task.dim == 2:
                 ax.set_ylabel("")

@@ -1,0 +1,265 @@
+"""Experiment specs, the runner (resume after kill -9, determinism, Ray vs local), provenance and run tracking.
+
+Runs here use GPprior+Cost (no model to train) on EnvSimple2D with a tiny dataset, in a private cache.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from mpd.experiments.results import RowStore, read_results
+from mpd.experiments.runner import Runner
+from mpd.experiments.spec import SPEC_DIR, load_spec
+from mpd.schema import ConfigError
+
+TASK = "EnvSimple2D-RobotPointMass2D"
+METRIC_COLUMNS = ["success", "fraction_valid", "vendi", "path_length", "smoothness", "best_index"]
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A private cache and runs folder, and a tiny dataset definition."""
+    root = tmp_path_factory.mktemp("experiments")
+    old = {k: os.environ.get(k) for k in ("MPD_CACHE", "MPD_RUNS")}
+    os.environ["MPD_CACHE"] = str(root / "cache")
+    os.environ["MPD_RUNS"] = str(root / "runs")
+    for seed in (0, 1):
+        (root / f"tiny{seed}.toml").write_text(
+            textwrap.dedent(f"""
+            name = "tiny{seed}"
+            task = "{TASK}"
+            n_contexts = 24
+            seed = {seed}
+            chunk_size = 12
+            [checker]
+            kind = "spheres"
+            """)
+        )
+    yield root
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+def write_spec(root: Path, name: str, body: str = "", dataset: str = "tiny0", n_contexts: int = 4) -> Path:
+    p = root / f"{name}.toml"
+    p.write_text(
+        textwrap.dedent(f"""
+        name = "{name}"
+        n_contexts = {n_contexts}
+        n_samples = 16
+        seeds = [0]
+        record_contexts = 0
+        [axes]
+        task = ["{TASK}"]
+        method = ["gp-cost"]
+        extra_objects = [false, true]
+        """)
+        + textwrap.dedent(body)
+        + textwrap.dedent(f"""
+        [tasks."{TASK}"]
+        dataset = "{root / dataset}.toml"
+        """)
+    )
+    return p
+
+
+# ---------------------------------------------------------------------------------------------------- specs
+@pytest.mark.parametrize(
+    ("edit", "where"),
+    [
+        ('n_context = 3\n', "n_context"),
+        ('[axes]\nmethod = ["gp-cost", "nope"]\n', "axes.method"),
+        ('[axes]\ntask = ["EnvNope"]\n', "axes.task"),
+        ('[axes]\npreset = ["offical"]\n', "axes.preset"),
+        ('[axes]\nparametrization = ["waypoints"]\n', "axes"),
+        ('[axes]\nwidth = [1]\n', "axes.width"),
+        ('[axes]\n"planner.guide_rate" = [1.0]\n', "axes.planner.guide_rate"),
+        ('[axes]\nn_samples = [0]\n', "axes.n_samples"),
+    ],
+)
+def test_spec_errors_name_file_and_key(tmp_path, edit, where):
+    base = {
+        "name": '"bad"',
+        "n_samples": "4",
+    }
+    axes = {"task": f'["{TASK}"]', "method": '["gp-cost"]'}
+    top = dict(base)
+    if edit.startswith("[axes]"):
+        for line in edit.splitlines()[1:]:
+            k, v = line.split(" = ")
+            axes[k] = v
+    else:
+        k, v = edit.strip().split(" = ")
+        top[k] = v
+    text = "\n".join(f"{k} = {v}" for k, v in top.items()) + "\n[axes]\n"
+    text += "\n".join(f"{k} = {v}" for k, v in axes.items())
+    text += f'\n[tasks."{TASK}"]\ndataset = "x"\n'
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_spec(p)
+    msg = str(e.value)
+    assert str(p) in msg and where in msg and "\n" not in msg
+
+
+def test_cli_reports_one_line_and_exit_code_2(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text(f'name = "bad"\n[axes]\ntask = ["{TASK}"]\nmethod = ["mdp"]\n[tasks."{TASK}"]\ndataset = "x"\n')
+    r = subprocess.run([sys.executable, "-m", "mpd.cli", "run", str(p), "--dry-run"], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "axes.method" in r.stderr and "'mdp'" in r.stderr
+
+
+def test_matrix_expansion_exclude_only_and_collapse(tmp_path):
+    p = write_spec(
+        tmp_path,
+        "m",
+        """
+        method = ["gp-cost", "mpd"]
+        sampler = ["ddim", "ddpm"]
+        rotation_deg = [0, 30]
+        [[exclude]]
+        method = "mpd"
+        rotation_deg = 30
+        """,
+    )
+    # (the [axes] table is re-opened by the body: rewrite it as one table)
+    text = p.read_text().replace('method = ["gp-cost"]\n', "", 1)
+    p.write_text(text)
+    spec = load_spec(p)
+    cells = spec.cells()
+    # gp-cost: sampler collapsed -> 2 scenes x 2 rotations; mpd: 2 samplers x 2 scenes x rotation 0
+    assert len([c for c in cells if c.p["method"] == "gp-cost"]) == 4
+    assert all(c.p["sampler"] is None for c in cells if c.p["method"] == "gp-cost")
+    assert len([c for c in cells if c.p["method"] == "mpd"]) == 4
+    assert not any(c.p["method"] == "mpd" and c.p["rotation_deg"] == 30 for c in cells)
+    only = spec.cells({"method": ["mpd"], "sampler": ["ddpm"]})
+    assert len(only) == 2 and {c.p["extra_objects"] for c in only} == {False, True}
+    assert len({c.key for c in cells}) == len(cells)
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in SPEC_DIR.glob("*.toml")))
+def test_shipped_specs_load_and_dry_run(name, tmp_path, monkeypatch):
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MPD_RUNS", str(tmp_path / "runs"))
+    spec = load_spec(name)
+    text = Runner(spec).describe()
+    assert f"{len(spec.cells())} cells" in text
+    for c in spec.cells():
+        assert c.key in text
+
+
+# ---------------------------------------------------------------------------------------------------- runs
+def _run(spec_path: Path, run_dir: Path, **kw) -> pd.DataFrame:
+    Runner(load_spec(spec_path), run_dir=run_dir, progress=False, **kw).run()
+    return read_results(run_dir)
+
+
+def test_provenance_columns_and_determinism(work):
+    from mpd.data.definition import load_definition
+    from mpd.provenance import git_state
+    from mpd.tasks import load_task
+
+    spec = write_spec(work, "det")
+    a = _run(spec, work / "runs" / "det-a")
+    b = _run(spec, work / "runs" / "det-b")
+    assert len(a) == 2 * 4 and a[["cell_key", "context_index"]].duplicated().sum() == 0
+    pd.testing.assert_frame_equal(a[METRIC_COLUMNS], b[METRIC_COLUMNS])
+    commit, dirty = git_state()
+    lock = json.loads((load_definition(work / "tiny0.toml").data_dir / "lock.json").read_text())
+    assert set(a["git_commit"]) == {commit} and set(a["git_dirty"]) == {dirty}
+    assert set(a["task_hash"]) == {load_task(TASK).file_hash}
+    assert set(a["dataset_hash"]) == {lock["content_hash"]}
+    for col in ("spec_hash", "run_id", "torch_version", "libraries", "device", "time_total", "plan_seed"):
+        assert col in a.columns and a[col].notna().all()
+    man = json.loads((work / "runs" / "det-a" / "manifest.json").read_text())
+    assert man["status"] == "completed" and man["n_rows"] == 8
+
+
+def test_rerun_skips_finished_cells(work):
+    spec = write_spec(work, "skip")
+    run_dir = work / "runs" / "skip"
+    first = _run(spec, run_dir)
+    again = _run(spec, run_dir)
+    pd.testing.assert_series_equal(first["finished_at"], again["finished_at"])
+
+
+def test_resume_after_kill_9_loses_and_recomputes_nothing(work):
+    spec = write_spec(work, "kill", n_contexts=10)
+    run_dir = work / "runs" / "kill"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "mpd.cli", "run", str(spec), "--run-dir", str(run_dir)]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    store = RowStore(run_dir)
+    deadline = time.time() + 240
+    while time.time() < deadline and len(store.rows()) < 3:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    before = {(r["cell_key"], r["context_index"]): r["finished_at"] for r in store.rows()}
+    assert 3 <= len(before) < 20, "the run should have been killed in the middle"
+    subprocess.run(cmd, env=env, check=True, capture_output=True)
+    df = read_results(run_dir)
+    assert len(df) == 20 and not df[["cell_key", "context_index"]].duplicated().any()
+    after = {(r.cell_key, r.context_index): r.finished_at for r in df.itertuples()}
+    assert all(after[k] == v for k, v in before.items()), "a row finished before the kill was recomputed"
+
+
+@pytest.mark.ray
+def test_ray_and_local_give_identical_rows(work):
+    pytest.importorskip("ray")
+    spec = write_spec(work, "ray")
+    local = _run(spec, work / "runs" / "ray-local")
+    ray_df = _run(spec, work / "runs" / "ray-ray", executor="ray", workers=2)
+    import ray
+
+    ray.shutdown()
+    skip = {c for c in local.columns if c.startswith(("time_", "info_"))} | {"finished_at", "run_id", "n_cost_gradient_calls"}
+    cols = [c for c in local.columns if c not in skip]
+    key = ["cell_key", "context_index"]
+    pd.testing.assert_frame_equal(
+        local.sort_values(key).reset_index(drop=True)[cols], ray_df.sort_values(key).reset_index(drop=True)[cols]
+    )
+
+
+def test_compare_same_runs_and_flag_changed_dataset(work):
+    from mpd.experiments.tracking import compare_runs
+
+    spec_a = write_spec(work, "cmp")
+    a = work / "runs" / "cmp-a"
+    b = work / "runs" / "cmp-b"
+    _run(spec_a, a)
+    _run(spec_a, b)
+    table, notes = compare_runs(a, b)
+    assert "no metric difference" in notes
+    assert not table["inputs_changed"].astype(bool).any()
+    spec_c = write_spec(work, "cmp", dataset="tiny1")  # same cells, another dataset
+    c = work / "runs" / "cmp-c"
+    _run(spec_c, c)
+    table, notes = compare_runs(a, c)
+    assert table["inputs_changed"].str.contains("dataset_hash").all()
+
+
+def test_mlflow_run_appears_in_local_store(work):
+    mlflow = pytest.importorskip("mlflow")
+    pytest.importorskip("sqlalchemy")
+    spec = write_spec(work, "mlf")
+    run_dir = work / "runs" / "mlf"
+    Runner(load_spec(spec), run_dir=run_dir, progress=False, mlflow=True).run()
+    mlflow.set_tracking_uri(f"sqlite:///{work / 'runs' / 'mlflow.db'}")
+    exp = mlflow.get_experiment_by_name("mpd")
+    runs = mlflow.search_runs(experiment_ids=[exp.experiment_id], output_format="list")
+    assert any(r.info.run_name == "mlf" for r in runs)
