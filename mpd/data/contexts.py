@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from mpd.data.checkers import SphereChecker
+from mpd.data.definition import task_data_hash
 from mpd.data.planning import JointSpacePlanner, PlannerSettings, default_check_step, problem_seed
 from mpd.paths import cache_dir
 from mpd.robots.ik import solve_ik
@@ -186,12 +187,12 @@ def evaluation_seed(task: Task) -> int:
 
 
 def contexts_cache_path(task: Task, n: int) -> Path:
-    return cache_dir() / "contexts" / f"{task.name}-{task.file_hash[:16]}-n{n}-v{CONTEXTS_VERSION}.npz"
+    return cache_dir() / "contexts" / f"{task.name}-{task_data_hash(task)[:16]}-n{n}-v{CONTEXTS_VERSION}.npz"
 
 
 def _cached_sets(task: Task) -> dict[int, Path]:
     out = {}
-    for p in contexts_cache_path(task, 0).parent.glob(f"{task.name}-{task.file_hash[:16]}-n*-v{CONTEXTS_VERSION}.npz"):
+    for p in contexts_cache_path(task, 0).parent.glob(f"{task.name}-{task_data_hash(task)[:16]}-n*-v{CONTEXTS_VERSION}.npz"):
         try:
             out[int(p.name.rsplit("-n", 1)[1].split("-v")[0])] = p
         except ValueError:

@@ -163,11 +163,22 @@ def robot_file(task: Task) -> Path:
     return robot_files().get(name, Path(name))
 
 
+# the sections of a task file that shape its data; cost weights, inference and training settings do not, so
+# tuning them does not invalidate (and regenerate) the datasets
+DATA_SECTIONS = ("schema_version", "environment", "robot", "context", "trajectory", "collision", "data")
+
+
+def task_data_hash(task: Task) -> str:
+    """Hash of the data-relevant sections of a task file (after parsing, so comments and layout do not count)."""
+    spec = to_dict(task.spec)
+    return stable_hash({k: spec[k] for k in DATA_SECTIONS}, n=64)
+
+
 def identity_of(defn: DatasetDefinition, task: Task) -> str:
-    """Hash of the filled definition (name and description aside), the task file, the robot file and
-    GENERATOR_VERSION. Any edit of the task file changes it, training settings included."""
+    """Hash of the filled definition (name and description aside), the data-relevant sections of the task file
+    (``DATA_SECTIONS``), the robot file and GENERATOR_VERSION."""
     content = {k: v for k, v in to_dict(defn).items() if k not in ("name", "description")}
-    return stable_hash(content, task.file_hash, file_sha256(robot_file(task)), GENERATOR_VERSION)
+    return stable_hash(content, task_data_hash(task), file_sha256(robot_file(task)), GENERATOR_VERSION)
 
 
 def resolve(raw: DatasetDefinition, path: Path | None = None) -> ResolvedDefinition:
