@@ -1,0 +1,88 @@
+"""``mpd train`` and ``mpd models list``."""
+
+from __future__ import annotations
+
+import click
+
+
+def default_dataset(task_name: str) -> str:
+    """The paper-size dataset when it has been generated here, else the small one."""
+    from mpd.data.definition import DATASETS_DIR
+
+    paper = f"{task_name}-paper"
+    return paper if (DATASETS_DIR / f"{paper}.lock.json").exists() else f"{task_name}-small"
+
+
+@click.command("train")
+@click.option("--task", "task_name", required=True, help="task name or task file")
+@click.option("--model", "kind", type=click.Choice(["diffusion", "cvae"]), default="diffusion", show_default=True)
+@click.option("--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True)
+@click.option("--profile", default="cpu", show_default=True, help="training profile of the task file: cpu or paper")
+@click.option(
+    "--dataset",
+    default=None,
+    help="dataset name or definition file (default: <task>-paper if generated, else <task>-small)",
+)
+@click.option("--steps", type=int, default=None, help="override the profile's number of steps")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
+@click.option("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
+def train(task_name, kind, parametrization, profile, dataset, steps, seed, device, threads):
+    """Train (or find, when this exact model exists) a prior; prints the checkpoint path."""
+    import dataclasses
+
+    import torch
+
+    from mpd.data.dataset import load_dataset
+    from mpd.experiments.artifacts import training_arrays
+    from mpd.models.train import train_model
+    from mpd.tasks import load_task
+
+    if threads:
+        torch.set_num_threads(threads)
+    task = load_task(task_name)
+    spec = task.training(profile)
+    if steps is not None:
+        spec = dataclasses.replace(
+            spec, steps=steps, val_every=min(spec.val_every, steps), checkpoint_every=min(spec.checkpoint_every, steps)
+        )
+    name = dataset or default_dataset(task.name)
+    click.echo(f"dataset {name}")
+    ds = load_dataset(name)
+    arrays = training_arrays(task, ds, parametrization)
+    path = train_model(arrays, kind, task.spec.model, spec, seed=seed, device=device)
+    click.echo(f"model: {path}")
+
+
+@click.group("models")
+def models():
+    """Trained models in the cache."""
+
+
+@models.command("list")
+@click.option("--task", "task_name", default=None)
+def models_list(task_name):
+    import pandas as pd
+
+    from mpd.models.train import list_models
+
+    rows = []
+    for m in list_models(task_name):
+        rows.append(
+            {
+                "task": m.get("task_name"),
+                "kind": m.get("kind"),
+                "parametrization": m.get("parametrization"),
+                "identity": m.get("identity"),
+                "steps": (m.get("training_spec") or {}).get("steps"),
+                "val_loss": m.get("final_val_loss"),
+                "steps/s": m.get("steps_per_s"),
+                "dataset": str(m.get("dataset_hash", ""))[:12],
+                "path": m.get("path"),
+            }
+        )
+    if not rows:
+        click.echo("no trained models yet (mpd train --task NAME)")
+        return
+    with pd.option_context("display.width", 250, "display.max_colwidth", 120):
+        click.echo(pd.DataFrame(rows).to_string(index=False))
