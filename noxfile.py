@@ -25,8 +25,9 @@ VENV = ROOT / ".nox" / "mpd"
 nox.options.sessions = ["tests"]
 
 
-def _venv(session: nox.Session, extras: str = "dev") -> Path:
-    """Create/refresh the shared environment; returns its bin directory."""
+def _venv(session: nox.Session, extras: str = "dev,ray,mlflow") -> Path:
+    """Create/refresh the shared environment (one set of extras for every session, so that switching sessions never
+    reinstalls); returns its bin directory."""
     bin_dir = VENV / ("Scripts" if sys.platform == "win32" else "bin")
     python = bin_dir / "python"
     stamp = VENV / ".mpd-stamp"
@@ -69,7 +70,7 @@ def experiments(session: nox.Session) -> None:
         session.error(
             "usage: nox -s experiments -- SPEC [--only KEY=VALUE ...] [--executor ray] [--workers N]"
         )
-    b = _venv(session, "dev,ray")
+    b = _venv(session)
     session.run(str(b / "mpd"), "run", *session.posargs, external=True)
 
 

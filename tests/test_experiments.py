@@ -80,14 +80,14 @@ def write_spec(root: Path, name: str, body: str = "", dataset: str = "tiny0", n_
 @pytest.mark.parametrize(
     ("edit", "where"),
     [
-        ('n_context = 3\n', "n_context"),
+        ("n_context = 3\n", "n_context"),
         ('[axes]\nmethod = ["gp-cost", "nope"]\n', "axes.method"),
         ('[axes]\ntask = ["EnvNope"]\n', "axes.task"),
         ('[axes]\npreset = ["offical"]\n', "axes.preset"),
         ('[axes]\nparametrization = ["waypoints"]\n', "axes"),
-        ('[axes]\nwidth = [1]\n', "axes.width"),
+        ("[axes]\nwidth = [1]\n", "axes.width"),
         ('[axes]\n"planner.guide_rate" = [1.0]\n', "axes.planner.guide_rate"),
-        ('[axes]\nn_samples = [0]\n', "axes.n_samples"),
+        ("[axes]\nn_samples = [0]\n", "axes.n_samples"),
     ],
 )
 def test_spec_errors_name_file_and_key(tmp_path, edit, where):
@@ -227,7 +227,11 @@ def test_ray_and_local_give_identical_rows(work):
     import ray
 
     ray.shutdown()
-    skip = {c for c in local.columns if c.startswith(("time_", "info_"))} | {"finished_at", "run_id", "n_cost_gradient_calls"}
+    skip = {c for c in local.columns if c.startswith(("time_", "info_"))} | {
+        "finished_at",
+        "run_id",
+        "n_cost_gradient_calls",
+    }
     cols = [c for c in local.columns if c not in skip]
     key = ["cell_key", "context_index"]
     pd.testing.assert_frame_equal(
@@ -263,3 +267,23 @@ def test_mlflow_run_appears_in_local_store(work):
     exp = mlflow.get_experiment_by_name("mpd")
     runs = mlflow.search_runs(experiment_ids=[exp.experiment_id], output_format="list")
     assert any(r.info.run_name == "mlf" for r in runs)
+    # a training record (the runner logs the models it resolved, the training CLI with --mlflow)
+    from mpd.experiments.tracking import log_model_to_mlflow
+
+    meta = {
+        "task_name": TASK,
+        "kind": "diffusion",
+        "parametrization": "bspline",
+        "identity": "abc123",
+        "dataset_hash": "d" * 64,
+        "seed": 0,
+        "training_spec": {"steps": 3, "batch_size": 2},
+        "history": [{"step": 1, "train_loss": 1.0, "val_loss": 1.1}, {"step": 3, "train_loss": 0.5}],
+        "final_train_loss": 0.5,
+    }
+    path = work / "meta.json"
+    path.write_text(json.dumps(meta))
+    rid = log_model_to_mlflow(path, f"sqlite:///{work / 'runs' / 'mlflow.db'}")
+    assert rid is not None and log_model_to_mlflow(path, f"sqlite:///{work / 'runs' / 'mlflow.db'}") is None
+    hist = mlflow.MlflowClient().get_metric_history(rid, "train_loss")
+    assert [(m.step, m.value) for m in hist] == [(1, 1.0), (3, 0.5)]

@@ -156,15 +156,11 @@ def needs(spec, cells) -> list[Need]:
         bad = chunk_states(rd)
         n = rd.definition.n_contexts
         rate = _PATHS_PER_S.get(task.robot.name, 2.0) * 2
-        out.append(
-            Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate)
-        )
+        out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate))
         content = _content_hash(rd) if not bad else None
         for kind, par in sorted(_model_kinds(cells, task_name)):
             train = training_settings(task, ts)
-            steps_s = _STEPS_PER_S.get(
-                len(task.spec.model.unet_dim_mults) + (1 if task.robot.dof > 4 else 0), 5.0
-            )
+            steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults) + (1 if task.robot.dof > 4 else 0), 5.0)
             if content is None:
                 out.append(
                     Need(
@@ -218,9 +214,7 @@ def resolve(spec, cells, progress: bool = True) -> dict[str, TaskArtifacts]:
         for kind, par in sorted(_model_kinds(cells, task_name)):
             arrays = training_arrays(task, ds, par)
             path = Path(
-                train_model(
-                    arrays, kind, task.spec.model, training_settings(task, ts), seed=0, progress=progress
-                )
+                train_model(arrays, kind, task.spec.model, training_settings(task, ts), seed=0, progress=progress)
             )
             import json
 

@@ -31,18 +31,12 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
 @click.argument("spec")
 @click.option("--only", multiple=True, help="keep only cells with KEY=VALUE (repeatable; VALUE may be a,b,c)")
 @click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True)
-@click.option(
-    "--address", default=None, help="Ray cluster address (with --executor ray); default: a local Ray"
-)
+@click.option("--address", default=None, help="Ray cluster address (with --executor ray); default: a local Ray")
 @click.option(
     "--workers", type=int, default=1, show_default=True, help="parallel processes (local) or CPUs (local Ray)"
 )
-@click.option(
-    "--dry-run", is_flag=True, help="print the cells, what would be generated or trained, and the work"
-)
-@click.option(
-    "--fresh", is_flag=True, help="discard this spec's previous results at this commit and start over"
-)
+@click.option("--dry-run", is_flag=True, help="print the cells, what would be generated or trained, and the work")
+@click.option("--fresh", is_flag=True, help="discard this spec's previous results at this commit and start over")
 @click.option(
     "--run-dir",
     type=click.Path(),
@@ -50,12 +44,8 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
     help="where the run lives (default: runs/<spec>-<hash>-<commit>)",
 )
 @click.option("--device", default=None, help="cpu, cuda, cuda:1 ... (default: CUDA when present)")
-@click.option(
-    "--report/--no-report", default=False, help="write the report and the Rerun recording at the end"
-)
-@click.option(
-    "--mlflow", is_flag=True, help="also log the run to the local MLflow store (needs the mlflow extra)"
-)
+@click.option("--report/--no-report", default=False, help="write the report and the Rerun recording at the end")
+@click.option("--mlflow", is_flag=True, help="also log the run to the local MLflow store (needs the mlflow extra)")
 def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow):
     """Run an experiment SPEC (a name under benchmarks/specs/ or a path)."""
     from mpd.experiments.runner import Runner

@@ -145,8 +145,11 @@ class Runner:
             manifest.update(status=status, finished_at=time.time(), n_rows=int(len(df)))
             write_json(manifest, self.run_dir / "manifest.json")
         if self.mlflow:
-            from mpd.experiments.tracking import log_run_to_mlflow
+            from mpd.experiments.tracking import log_model_to_mlflow, log_run_to_mlflow
 
+            for art in resolved.values():
+                for m in art.models.values():
+                    log_model_to_mlflow(m.path.parent / "meta.json")
             log_run_to_mlflow(self.run_dir)
         return self.run_dir
 

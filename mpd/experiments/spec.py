@@ -99,11 +99,7 @@ class Cell:
         return stable_hash(self.p, n=12)
 
     def planner_overrides(self) -> dict[str, Any]:
-        return {
-            k[len(PLANNER_PREFIX) :]: v
-            for k, v in self.params
-            if k.startswith(PLANNER_PREFIX) and v is not None
-        }
+        return {k[len(PLANNER_PREFIX) :]: v for k, v in self.params if k.startswith(PLANNER_PREFIX) and v is not None}
 
     def label(self) -> str:
         return ", ".join(f"{k}={v}" for k, v in self.params if v is not None)
@@ -221,9 +217,7 @@ def load_spec(name_or_path: str | Path) -> Spec:
         p = SPEC_DIR / f"{name_or_path}.toml"
         if not p.exists():
             known = ", ".join(sorted(x.stem for x in SPEC_DIR.glob("*.toml")))
-            raise ConfigError(
-                name_or_path, "", f"unknown spec (known: {known}; or give a path to a .toml file)"
-            )
+            raise ConfigError(name_or_path, "", f"unknown spec (known: {known}; or give a path to a .toml file)")
     raw = read_toml(p)
     data = from_dict(SpecFile, raw, source=p)
     _validate(data, p)

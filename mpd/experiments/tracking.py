@@ -141,28 +141,64 @@ def compare_runs(run_a: Path, run_b: Path, tol: float = 0.0) -> tuple[pd.DataFra
     return table, notes
 
 
+def _mlflow_experiment(mlflow, tracking_uri: str | None) -> str:
+    warnings.filterwarnings("ignore", message=".*noload.*")
+    mlflow.set_tracking_uri(tracking_uri or f"sqlite:///{runs_dir() / 'mlflow.db'}")
+    exp = mlflow.get_experiment_by_name("mpd")
+    if exp:
+        return exp.experiment_id
+    return mlflow.create_experiment("mpd", artifact_location=(runs_dir() / "mlflow-artifacts").as_uri())
+
+
+def log_model_to_mlflow(meta_path: Path, tracking_uri: str | None = None) -> str | None:
+    """Mirror a trained model's training record (settings, loss curves, meta.json) into the local MLflow store,
+    once per model identity."""
+    try:
+        import mlflow
+    except ImportError:
+        warnings.warn("mlflow is not installed (pip install -e .[mlflow]); skipping MLflow logging", stacklevel=2)
+        return None
+    meta = json.loads(Path(meta_path).read_text())
+    exp_id = _mlflow_experiment(mlflow, tracking_uri)
+    name = f"train-{meta['task_name']}-{meta['kind']}-{meta['parametrization']}-{meta['identity']}"
+    if mlflow.search_runs(experiment_ids=[exp_id], filter_string=f"run_name = '{name}'", output_format="list"):
+        return None
+    with mlflow.start_run(experiment_id=exp_id, run_name=name) as r:
+        ts = meta.get("training_spec", {})
+        mlflow.log_params(
+            {
+                "task": meta["task_name"],
+                "kind": meta["kind"],
+                "parametrization": meta["parametrization"],
+                "identity": meta["identity"],
+                "dataset_hash": meta["dataset_hash"],
+                "seed": meta.get("seed"),
+                **{f"train.{k}": v for k, v in ts.items()},
+            }
+        )
+        for h in meta.get("history", []):
+            step = int(h.get("step", 0))
+            for k in ("train_loss", "val_loss"):
+                if h.get(k) is not None:
+                    mlflow.log_metric(k, float(h[k]), step=step)
+        for k in ("final_train_loss", "final_val_loss", "steps_per_s", "wall_time_s"):
+            if meta.get(k) is not None:
+                mlflow.log_metric(k, float(meta[k]))
+        mlflow.log_artifact(str(meta_path))
+        return r.info.run_id
+
+
 def log_run_to_mlflow(run_dir: Path, tracking_uri: str | None = None) -> str | None:
     """Mirror a run into a local MLflow store (``sqlite:///<runs>/mlflow.db``): params, per-cell mean metrics and
     the results/manifest as artifacts. Returns the MLflow run id, or None when mlflow is not installed."""
     try:
         import mlflow
     except ImportError:
-        warnings.warn(
-            "mlflow is not installed (pip install -e .[mlflow]); skipping MLflow logging", stacklevel=2
-        )
+        warnings.warn("mlflow is not installed (pip install -e .[mlflow]); skipping MLflow logging", stacklevel=2)
         return None
-    warnings.filterwarnings("ignore", message=".*noload.*")
     run_dir = Path(run_dir)
     man = json.loads((run_dir / "manifest.json").read_text())
-    uri = tracking_uri or f"sqlite:///{runs_dir() / 'mlflow.db'}"
-    mlflow.set_tracking_uri(uri)
-    name = "mpd"
-    exp = mlflow.get_experiment_by_name(name)
-    exp_id = (
-        exp.experiment_id
-        if exp
-        else mlflow.create_experiment(name, artifact_location=(runs_dir() / "mlflow-artifacts").as_uri())
-    )
+    exp_id = _mlflow_experiment(mlflow, tracking_uri)
     df = read_results(run_dir)
     with mlflow.start_run(experiment_id=exp_id, run_name=man["run_id"]) as r:
         prov = man.get("provenance", {})

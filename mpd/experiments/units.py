@@ -33,9 +33,7 @@ class Unit:
 class UnitResult:
     cell_key: str
     row: dict[str, Any]
-    history: dict[str, np.ndarray] | None = (
-        None  # when recorded: the batch at every step, and the final dense
-    )
+    history: dict[str, np.ndarray] | None = None  # when recorded: the batch at every step, and the final dense
 
 
 def _planner(unit: Unit):

@@ -27,7 +27,8 @@ def default_dataset(task_name: str) -> str:
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
 @click.option("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
-def train(task_name, kind, parametrization, profile, dataset, steps, seed, device, threads):
+@click.option("--mlflow", is_flag=True, help="also log the training to the local MLflow store (mlflow extra)")
+def train(task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow):
     """Train (or find, when this exact model exists) a prior; prints the checkpoint path."""
     import dataclasses
 
@@ -52,6 +53,12 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
     arrays = training_arrays(task, ds, parametrization)
     path = train_model(arrays, kind, task.spec.model, spec, seed=seed, device=device)
     click.echo(f"model: {path}")
+    if mlflow:
+        from pathlib import Path
+
+        from mpd.experiments.tracking import log_model_to_mlflow
+
+        log_model_to_mlflow(Path(path).parent / "meta.json")
 
 
 @click.group("models")
