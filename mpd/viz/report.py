@@ -1,0 +1,383 @@
+"""A run's report: ``run_dir/report/`` with figures (PNG + PDF), Markdown tables and ``index.md``.
+
+Everything comes from the results table (``mpd.experiments.results.read_results``), the manifest and, for the
+scene figures and the Rerun recordings, the recorded histories. Rebuilding it from the same table gives the same
+Markdown: nothing in it depends on when or where it was built.
+
+    report/
+      index.md            one page: provenance, figures, tables, recordings
+      summary.md          mean ± std over contexts per task x scene x method
+      paper.md            the paper's stated numbers beside ours
+      timing.md           time per cell, per cost
+      figures/<name>.png|.pdf
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mpd.experiments.results import read_results
+from mpd.viz.report_data import EXTRA, TRAIN, method_label, method_order, prepare, short_task, task_order
+from mpd.viz.report_figures import FIGURES, add_caption
+from mpd.viz.report_tables import markdown_table, paper_table, summary_table, timing_table
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Entry:
+    """One figure of the report: its file stem, title, and why it is missing (None when written)."""
+
+    name: str
+    title: str
+    skipped: str | None = None
+
+
+# --------------------------------------------------------------------------------------------- provenance
+def _manifest(run_dir: Path) -> dict:
+    p = run_dir / "manifest.json"
+    return json.loads(p.read_text()) if p.exists() else {}
+
+
+def _first(df: pd.DataFrame, col: str, default=""):
+    if col in df.columns and df[col].notna().any():
+        return df[col].dropna().iloc[0]
+    return default
+
+
+def run_info(run_dir: Path, man: dict, df: pd.DataFrame) -> dict:
+    """Spec, hash, commit: from the manifest, else from the table's provenance columns."""
+    prov = man.get("provenance", {})
+    commit = prov.get("git_commit") or str(_first(df, "git_commit", "unknown"))
+    dirty = prov.get("git_dirty", bool(_first(df, "git_dirty", False)))
+    return {
+        "run_id": man.get("run_id") or str(_first(df, "run_id", run_dir.name)),
+        "spec": man.get("spec_name") or str(_first(df, "spec_name", "?")),
+        "spec_hash": man.get("spec_hash") or str(_first(df, "spec_hash", "?")),
+        "commit": commit,
+        "dirty": bool(dirty),
+    }
+
+
+def caption(info: dict) -> str:
+    return (
+        f"spec {info['spec']} ({info['spec_hash']}) · commit {info['commit'][:10]}"
+        f"{' (dirty)' if info['dirty'] else ''} · run {info['run_id']}"
+    )
+
+
+def _provenance_md(run_dir: Path, man: dict, df: pd.DataFrame, info: dict) -> list[str]:
+    prov = man.get("provenance", {})
+    rows = [
+        ["run", f"`{info['run_id']}`"],
+        ["spec", f"{info['spec']} (`{man.get('spec_path', '?')}`)"],
+        ["spec hash", f"`{info['spec_hash']}`"],
+        ["commit", f"`{info['commit']}`" + (" (dirty working tree)" if info["dirty"] else "")],
+        ["status", str(man.get("status", "?"))],
+        ["device", ", ".join(sorted({str(v) for v in df["device"].dropna()})) if "device" in df else "?"],
+        ["executor", f"{man.get('executor', '?')}, workers: {man.get('workers', '?')}"],
+        ["rows (cell × context)", str(len(df))],
+        ["cells", str(df["cell_key"].nunique() if "cell_key" in df else "?")],
+    ]
+    for key, label in (("started_at", "started"), ("finished_at", "finished")):
+        if man.get(key):
+            rows.append([label, pd.Timestamp(man[key], unit="s", tz="UTC").strftime("%Y-%m-%d %H:%M:%S UTC")])
+    out = ["## Provenance", "", markdown_table(["", ""], rows), ""]
+    # inputs per task: the manifest's artifacts, completed by the table's hashes (a run may be a merge)
+    arts = man.get("artifacts", {}) or {}
+    trows = []
+    for task in task_order(df["task"].unique()):
+        g = df[df["task"] == task]
+        a = arts.get(task, {})
+        hashes = (
+            lambda c, g=g: (
+                (  # noqa: E731
+                    ", ".join(sorted({f"`{str(v)[:16]}`" for v in g[c].dropna() if str(v)})) if c in g else ""
+                )
+                or "–"
+            )
+        )
+        models = a.get("models") or {}
+        model_ids = ", ".join(f"{k} `{v}`" for k, v in sorted(models.items())) if models else "–"
+        trows.append(
+            [
+                task,
+                f"`{str(a.get('task_hash', _first(g, 'task_hash')))[:16]}`",
+                f"{a.get('dataset_id', _first(g, 'dataset_id', '–'))} ({hashes('dataset_hash')})",
+                model_ids,
+                hashes("model_hash"),
+            ]
+        )
+    out += [
+        "### Inputs per task",
+        "",
+        markdown_table(["task", "task file", "dataset (content hash)", "models", "model file hashes"], trows),
+        "",
+    ]
+    libs = prov.get("libraries") or {}
+    if not libs and "libraries" in df.columns:
+        libs = dict(kv.split("=", 1) for kv in str(_first(df, "libraries")).split(",") if "=" in kv)
+    if libs:
+        out += [
+            "### Libraries",
+            "",
+            markdown_table(["library", "version"], [[k, str(v)] for k, v in sorted(libs.items())]),
+            "",
+        ]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- figures
+def _save(fig, out: Path, formats: tuple[str, ...] = ("png", "pdf"), dpi: int = 200) -> None:
+    """PNG and PDF, each written to a temporary name and renamed (a report being rebuilt is never half-written)."""
+    from mpd.viz.scene import style
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with style():
+        box = getattr(fig, "_mpd_bbox", None)  # set by add_caption; else matplotlib finds it (one more draw)
+        for ext in formats:
+            kw = {"dpi": dpi} if ext == "png" else {"metadata": {"CreationDate": None}}  # no date: same bytes
+            path = out.with_suffix(f".{ext}")
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            fig.savefig(tmp, format=ext, bbox_inches=box or "tight", pad_inches=0.05, **kw)
+            os.replace(tmp, path)
+
+
+def table_figures(d: pd.DataFrame, fig_dir: Path, cap: str, **save) -> list[Entry]:
+    entries = []
+    for kind in FIGURES:
+        try:
+            fig = kind.make(d)
+        except Exception as e:  # one broken figure must not cost the whole report
+            log.exception("figure %s failed", kind.name)
+            entries.append(Entry(kind.name, kind.title, f"failed: {type(e).__name__}: {e}"))
+            continue
+        if fig is None:
+            entries.append(Entry(kind.name, kind.title, f"not in this run (needs {kind.needs})"))
+            continue
+        add_caption(fig, cap)
+        _save(fig, fig_dir / kind.name, **save)
+        entries.append(Entry(kind.name, kind.title))
+    return entries
+
+
+def _pick_histories(run_dir: Path, d: pd.DataFrame) -> list[tuple[str, str, str, Path, dict]]:
+    """Per task and scene: the recorded context of MPD (else of the first method, in the paper's order, that has
+    one). Returns (task, scene, method, history path, parameters)."""
+    from mpd.viz.recording import _params_from_run
+
+    files = sorted((run_dir / "histories").glob("*.npz")) if (run_dir / "histories").exists() else []
+    found: dict[tuple[str, str], dict[str, tuple[Path, dict]]] = {}
+    for f in files:
+        _, params = load_history_params(f)
+        if "task" not in params:
+            params = {**_params_from_run(run_dir, params.get("cell_key", "")), **params}
+        if "task" not in params:
+            continue
+        if (
+            float(params.get("rotation_deg") or 0.0) != 0.0
+            or str(params.get("parametrization") or "bspline") != "bspline"
+        ):
+            continue  # the scene figures show the main setting
+        scene = EXTRA if params.get("extra_objects") else TRAIN
+        by_method = found.setdefault((params["task"], scene), {})
+        key = params["method"]
+        # several recorded cells of one method (batch sizes, seeds): the largest batch, then the first context
+        prev = by_method.get(key)
+        rank = (-int(params.get("n_samples") or 0), int(params.get("context_index", 0)), f.name)
+        if prev is None or rank < prev[2]:
+            by_method[key] = (f, params, rank)
+    out = []
+    for task in task_order({t for t, _ in found}):
+        for scene in (TRAIN, EXTRA):
+            methods = found.get((task, scene))
+            if not methods:
+                continue
+            m = "mpd" if "mpd" in methods else method_order(methods)[0]
+            f, params, _ = methods[m]
+            out.append((task, scene, m, f, params))
+    return out
+
+
+def load_history_params(path: Path):
+    from mpd.viz.recording import load_history
+
+    return load_history(path)
+
+
+def _step_choice(labels: Sequence[str], k: int = 5) -> list[int]:
+    """k steps evenly spaced over the recorded ones, first and last included."""
+    n = len(labels)
+    return sorted({int(round(i)) for i in np.linspace(0, n - 1, min(k, n))})
+
+
+def history_figures(run_dir: Path, d: pd.DataFrame, fig_dir: Path, cap: str, **save) -> list[Entry]:
+    """The denoising figure and the trajectory figure of one recorded context per task and scene."""
+    from mpd.tasks import load_task
+    from mpd.viz import scene as sc
+
+    entries = []
+    for task_name, scene, method, f, params in _pick_histories(run_dir, d):
+        arrays, _ = load_history_params(f)
+        stem = f"{task_name}-{'extra' if scene == EXTRA else 'train'}"
+        what = f"{short_task(task_name)}, {scene}, {method_label(method)} (context {params.get('context_index', 0)})"
+        try:
+            task = load_task(task_name)
+        except Exception as e:
+            entries.append(Entry(f"denoising-{stem}", f"Denoising: {what}", f"task not loadable: {e}"))
+            continue
+        env = task.env(scene == EXTRA, 0.0)
+        if "steps_q" in arrays and len(arrays["steps_q"]):
+            labels = [str(s) for s in arrays.get("steps_label", [f"step {i}" for i in range(len(arrays["steps_q"]))])]
+            steps = [
+                (
+                    labels[i].replace(":", " "),
+                    arrays["steps_q"][i],
+                    arrays["steps_valid"][i] if "steps_valid" in arrays else None,
+                )
+                for i in _step_choice(labels, 5 if task.dim == 2 else 4)
+            ]
+            fig = sc.denoising_figure(task, env, steps)
+            fig._mpd_note = what  # under the caption: a suptitle collides with the 3-D panels' titles
+            add_caption(fig, cap)
+            _save(fig, fig_dir / f"denoising-{stem}", **save)
+            entries.append(Entry(f"denoising-{stem}", f"Samples during denoising / optimization: {what}"))
+        else:
+            entries.append(Entry(f"denoising-{stem}", f"Denoising: {what}", "no steps recorded"))
+        fig = sc.trajectory_figure(
+            task,
+            env,
+            arrays["q"],
+            arrays["dq"],
+            arrays["ddq"],
+            arrays.get("valid"),
+            title=f"{short_task(task_name)}, {scene}\n{method_label(method)}",
+        )
+        add_caption(fig, cap)
+        _save(fig, fig_dir / f"trajectories-{stem}", **save)
+        entries.append(Entry(f"trajectories-{stem}", f"Final trajectories: {what}"))
+    return entries
+
+
+# ------------------------------------------------------------------------------------------------ index
+def _figures_md(entries: list[Entry], pdf: bool) -> list[str]:
+    out = ["## Figures", ""]
+    for e in entries:
+        if e.skipped is None:
+            links = (f"[PDF](figures/{e.name}.pdf) · " if pdf else "") + f"[PNG](figures/{e.name}.png)"
+            out += [f"### {e.title}", "", f"![{e.title}](figures/{e.name}.png)", "", links, ""]
+    skipped = [e for e in entries if e.skipped is not None]
+    if skipped:
+        out += ["### Not produced", ""] + [f"- {e.title}: {e.skipped}" for e in skipped] + [""]
+    return out
+
+
+def _recordings_md(run_dir: Path, recordings: list[Path], info: dict) -> list[str]:
+    out = ["## Rerun recordings", ""]
+    if not recordings:
+        return out + ["No recorded contexts in this run (`record_contexts = 0`, or no history written).", ""]
+    out += [
+        f"One recording per recorded (cell, context); open them with `mpd view {info['run_id']}` "
+        f"(or `mpd view {info['run_id']} --web` on a headless machine). Timelines: `denoising_step` (the batch at "
+        "every step), `time` (the final trajectories, seconds).",
+        "",
+    ]
+    out += [f"- [`{p.name}`](../recordings/{p.name})" for p in recordings]
+    return out + [""]
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def build_report(
+    run_dir: str | Path,
+    recordings: bool = True,
+    force_recordings: bool = False,
+    formats: tuple[str, ...] = ("png", "pdf"),
+    dpi: int = 200,
+) -> Path:
+    """(Re)build ``run_dir/report/`` and, with ``recordings``, ``run_dir/recordings/``; returns ``index.md``.
+
+    ``formats`` and ``dpi``: of the figure files (the Markdown links the PNG and, when written, the PDF)."""
+    if "png" not in formats:
+        raise ValueError(f"formats {formats!r}: the report shows the PNG files, so 'png' must be one of them")
+    run_dir = Path(run_dir)
+    df = read_results(run_dir)
+    if df.empty:
+        raise FileNotFoundError(f"{run_dir}: no results yet (results.parquet and parts/ are empty)")
+    man = _manifest(run_dir)
+    info = run_info(run_dir, man, df)
+    cap = caption(info)
+    d = prepare(df)
+    out = run_dir / "report"
+    fig_dir = out / "figures"
+    if fig_dir.exists():  # figures of an earlier build that this table no longer makes must not linger
+        shutil.rmtree(fig_dir)
+    fig_dir.mkdir(parents=True)
+
+    save = {"formats": tuple(formats), "dpi": dpi}
+    entries = table_figures(d, fig_dir, cap, **save)
+    entries += history_figures(run_dir, d, fig_dir, cap, **save)
+    recs: list[Path] = []
+    if recordings:
+        from mpd.viz.recording import record_run
+
+        recs = record_run(run_dir, force=force_recordings)
+    elif (run_dir / "recordings").exists():
+        recs = sorted((run_dir / "recordings").glob("*.rrd"))
+
+    summary = summary_table(d)
+    paper = paper_table(d)
+    timing = timing_table(d)
+    _write(out / "summary.md", f"# Summary: {info['run_id']}\n\nMean ± std over contexts.\n\n{summary}\n")
+    _write(out / "paper.md", f"# The paper's numbers beside ours: {info['run_id']}\n\n{paper}")
+    _write(
+        out / "timing.md",
+        f"# Timings: {info['run_id']}\n\nMean ± std over contexts; costs per gradient step.\n\n{timing}\n",
+    )
+
+    desc = (man.get("spec") or {}).get("description", "")
+    lines = [f"# Run `{info['run_id']}`", ""]
+    if desc:
+        lines += [desc, ""]
+    lines += [f"_{cap}_", ""]
+    lines += _provenance_md(run_dir, man, df, info)
+    lines += [
+        "## Tables",
+        "",
+        "- [Summary: mean ± std over contexts](summary.md)",
+        "- [The paper's numbers beside ours](paper.md)",
+        "- [Timings](timing.md)",
+        "",
+    ]
+    lines += [
+        "### The paper's numbers beside ours",
+        "",
+        paper,
+        "### Summary",
+        "",
+        "Mean ± std over contexts.",
+        "",
+        summary,
+        "",
+    ]
+    lines += _figures_md(entries, "pdf" in formats)
+    lines += _recordings_md(run_dir, recs, info)
+    index = out / "index.md"
+    _write(index, "\n".join(lines).rstrip() + "\n")
+    return index
+
+
+__all__ = ["build_report", "caption", "run_info"]

@@ -1,0 +1,242 @@
+"""Markdown tables of a run: the summary (mean ± std over contexts), the paper's numbers beside ours, the timings.
+
+Deterministic: rows sorted by task (paper order), scene, method (paper order) and the variant axes; numbers
+formatted with fixed precision.
+"""
+
+from __future__ import annotations
+
+import functools
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mpd.viz.report_data import (
+    EXTRA,
+    SUMMARY,
+    TRAIN,
+    VARIANT_AXES,
+    mean_std,
+    method_label,
+    method_order,
+    task_order,
+)
+
+PAPER_NUMBERS = Path(__file__).with_name("paper_numbers.toml")
+
+
+def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | None = None) -> str:
+    """A GitHub Markdown table; ``align`` per column: "l" or "r"."""
+    align = align or ["l"] * len(header)
+    esc = lambda s: str(s).replace("|", "\\|").replace("\n", " ")  # noqa: E731
+    lines = ["| " + " | ".join(esc(h) for h in header) + " |"]
+    lines.append("| " + " | ".join("---:" if a == "r" else "---" for a in align) + " |")
+    lines += ["| " + " | ".join(esc(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _varying(d: pd.DataFrame) -> list[str]:
+    """Variant axes (and planner.* axes) with more than one value in the run: they become table columns."""
+    cols = [a for a in VARIANT_AXES if a in d.columns] + sorted(c for c in d.columns if c.startswith("planner."))
+    return [c for c in cols if d[c].astype(str).nunique() > 1]
+
+
+def _groups(d: pd.DataFrame, extra_keys: list[str]):
+    """(key dict, rows) per cell, in report order."""
+    keys = ["task", "scene", "method", *extra_keys]
+    tasks = {t: i for i, t in enumerate(task_order(d["task"].unique()))}
+    methods = {m: i for i, m in enumerate(method_order(d["method"].unique()))}
+    scenes = {TRAIN: 0, EXTRA: 1}
+    out = []
+    for key, g in d.groupby(keys, sort=False, dropna=False):
+        k = dict(zip(keys, key))
+        sort = (
+            tasks[k["task"]],
+            scenes.get(k["scene"], 2),
+            methods[k["method"]],
+            *[_sortable(k[c]) for c in extra_keys],
+        )
+        out.append((sort, k, g))
+    out.sort(key=lambda t: t[0])
+    return [(k, g) for _, k, g in out]
+
+
+def _sortable(v):
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return (0, 0.0, "")
+    if isinstance(v, int | float | np.integer | np.floating):
+        return (1, float(v), "")
+    return (2, 0.0, str(v))
+
+
+def _fmt_axis(v) -> str:
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return "–"
+    if isinstance(v, float) and v.is_integer():
+        return f"{v:g}"
+    return str(v) if str(v) != "" else "–"
+
+
+def summary_table(d: pd.DataFrame) -> str:
+    """Mean ± std over contexts per task × scene × method (× the variant axes that vary in the run)."""
+    extra = _varying(d)
+    mets = [m for m in SUMMARY if m[0] in d.columns]
+    header = ["task", "scene", "method", *extra, "contexts", *[m[1] for m in mets]]
+    rows = []
+    for k, g in _groups(d, extra):
+        row = [k["task"], k["scene"], method_label(k["method"]), *[_fmt_axis(k[c]) for c in extra], str(len(g))]
+        row += [mean_std(g[col], scale, fmt) for col, _, scale, fmt in mets]
+        rows.append(row)
+    align = ["l"] * (3 + len(extra)) + ["r"] * (1 + len(mets))
+    return markdown_table(header, rows, align)
+
+
+# ------------------------------------------------------------------------------------------- timing table
+def cost_columns(d: pd.DataFrame) -> list[str]:
+    """Per-cost timing columns (``time_cost_<name>``), not the gradient total nor call counts."""
+    return sorted(
+        c
+        for c in d.columns
+        if c.startswith("time_cost_") and c != "time_cost_gradient" and not c.endswith("_calls") and d[c].notna().any()
+    )
+
+
+def gradient_calls(d: pd.DataFrame) -> pd.Series | None:
+    for c in ("n_cost_gradient_calls", "time_cost_gradient_calls"):  # older runs stored the count as a time_
+        if c in d.columns and d[c].notna().any():
+            return d[c]
+    return None
+
+
+def timing_table(d: pd.DataFrame) -> str:
+    """Per cell: total, sampling, network, cost-gradient time (s, mean ± std over contexts), gradient calls, and
+    each cost's share of one gradient step (ms)."""
+    extra = _varying(d)
+    main = [
+        (c, h)
+        for c, h in (
+            ("time_total", "total [s]"),
+            ("time_sampling", "sampling [s]"),
+            ("time_network", "network [s]"),
+            ("time_cost_gradient", "cost gradient [s]"),
+        )
+        if c in d.columns
+    ]
+    costs = cost_columns(d)
+    has_calls = gradient_calls(d) is not None
+    header = ["task", "scene", "method", *extra, "contexts", *[h for _, h in main]]
+    header += ["gradient calls"] if has_calls else []
+    header += [f"{c.removeprefix('time_cost_')} [ms/step]" for c in costs]
+    rows = []
+    for k, g in _groups(d, extra):
+        row = [k["task"], k["scene"], method_label(k["method"]), *[_fmt_axis(k[c]) for c in extra], str(len(g))]
+        row += [mean_std(g[c], 1.0, "{:.3f}") for c, _ in main]
+        calls = gradient_calls(g)
+        if has_calls:
+            row.append("–" if calls is None else mean_std(calls, 1.0, "{:.0f}"))
+        for c in costs:
+            per = g[c] / calls.replace(0, np.nan) if calls is not None else g[c]
+            row.append(mean_std(per, 1000.0, "{:.3f}"))
+        rows.append(row)
+    align = ["l"] * (3 + len(extra)) + ["r"] * (len(header) - 3 - len(extra))
+    return markdown_table(header, rows, align)
+
+
+# ----------------------------------------------------------------------------------------- paper numbers
+@functools.lru_cache(maxsize=1)
+def paper_numbers() -> tuple[dict, ...]:
+    """The numbers stated in the paper's text (``paper_numbers.toml``)."""
+    with open(PAPER_NUMBERS, "rb") as f:
+        return tuple(tomllib.load(f)["number"])
+
+
+def _match(d: pd.DataFrame, num: dict) -> pd.DataFrame:
+    """Rows of the cell that the paper's number describes: task, method, scene; rotation 0 and B-spline when the
+    run has them; the paper's batch size when present, else the largest."""
+    g = d[(d["task"] == num["task"]) & (d["method"] == num["method"])]
+    scene = num.get("scene", "any")
+    if scene == "any":
+        g = g[~g["extra_objects"]] if (~g["extra_objects"]).any() else g
+    else:
+        g = g[g["extra_objects"] == (scene == "extra")]
+    for axis, pref in (("rotation_deg", 0.0), ("parametrization", "bspline"), ("preset", "official")):
+        if axis in g.columns and (g[axis] == pref).any():
+            g = g[g[axis] == pref]
+    if "n_samples" in g.columns and len(g):
+        want = num.get("n_samples")
+        g = g[g["n_samples"] == (want if want is not None and (g["n_samples"] == want).any() else g["n_samples"].max())]
+    if "overrides" in g.columns and g["overrides"].astype(str).nunique() > 1:
+        g = g[g["overrides"].astype(str) == ""] if (g["overrides"].astype(str) == "").any() else g.iloc[:0]
+    return g
+
+
+def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
+    """One row per number stated in the paper for which the run has the cell: (table, sentences by reference)."""
+    sentences: list[str] = []
+    rows = []
+    for num in paper_numbers():
+        g = _match(d, num)
+        if num["metric"] not in g.columns or g[num["metric"]].notna().sum() == 0:
+            continue
+        if num["sentence"] not in sentences:
+            sentences.append(num["sentence"])
+        x = g[num["metric"]].astype(float).dropna() * float(num.get("scale", 1.0))
+        rows.append(
+            {
+                "task": num["task"],
+                "scene": {"train": TRAIN, "extra": EXTRA}.get(num.get("scene", "any"), TRAIN + " (not stated)"),
+                "method": method_label(num["method"]),
+                "metric": num["metric"],
+                "unit": num.get("unit", ""),
+                "paper": float(num["value"]),
+                "paper_text": str(num["value"]),
+                "ours": float(x.mean()),
+                "ours_std": float(x.std(ddof=1)) if len(x) > 1 else float("nan"),
+                "contexts": int(len(x)),
+                "n_samples": int(g["n_samples"].iloc[0]) if "n_samples" in g.columns else None,
+                "ref": sentences.index(num["sentence"]) + 1,
+                "note": num.get("note", ""),
+            }
+        )
+    return pd.DataFrame(rows), sentences
+
+
+def _num(v: float, like: str) -> str:
+    """Our number with the paper's precision (as it writes the number) plus one digit."""
+    digits = len(like.split(".")[1]) if "." in like else 0
+    return f"{v:.{digits + 1}f}"
+
+
+def paper_table(d: pd.DataFrame) -> str:
+    """The paper's numbers beside ours (mean ± std over contexts), with the sentences they come from."""
+    t, sentences = paper_comparison(d)
+    total = len(paper_numbers())
+    if t.empty:
+        return f"None of the {total} numbers stated in the paper's text has a matching cell in this run.\n"
+    header = ["task", "scene", "method", "metric", "paper", "ours", "contexts", "B", "source"]
+    rows = []
+    for _, r in t.iterrows():
+        unit = r["unit"] if r["unit"] in ("%", "°", "") else f" {r['unit']}"
+        ours = _num(r["ours"], r["paper_text"]) + (
+            "" if np.isnan(r["ours_std"]) else f" ± {_num(r['ours_std'], r['paper_text'])}"
+        )
+        rows.append(
+            [
+                r["task"],
+                r["scene"],
+                r["method"],
+                r["metric"],
+                f"{r['paper_text']}{unit}",
+                f"{ours}{unit}",
+                str(r["contexts"]),
+                "–" if r["n_samples"] is None else str(r["n_samples"]),
+                f"[{r['ref']}]" + (f" ({r['note']})" if r["note"] else ""),
+            ]
+        )
+    out = [markdown_table(header, rows, ["l", "l", "l", "l", "r", "r", "r", "r", "l"]), ""]
+    out.append(f"{len(t)} of the {total} numbers stated in the paper's text have a matching cell in this run.")
+    out.append("")
+    out += [f"[{i}] “{s}”  " for i, s in enumerate(sentences, 1)]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,262 @@
+"""Reports from a synthetic results table: every figure kind is produced and is a non-empty image, the paper's
+numbers sit beside ours, and building twice gives the same Markdown."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from mpd.viz import report_figures as rf
+from mpd.viz.report import build_report
+from mpd.viz.report_data import EXTRA, TRAIN, main_slice, prepare
+from mpd.viz.report_tables import paper_comparison, paper_numbers, paper_table
+
+PNG = b"\x89PNG\r\n\x1a\n"
+SIMPLE, WAREHOUSE, SPHERES = "EnvSimple2D-RobotPointMass2D", "EnvWarehouse-RobotPanda", "EnvSpheres3D-RobotPanda"
+METHODS = ("gp-cost", "cvae", "cvae-cost", "dprior", "dprior-cost", "mpd", "rrtconnect-cost")
+COSTS = ("acceleration", "chain_rule", "collision", "dense", "fk", "joint_limits", "velocity")
+
+
+def _rows(rng, task, method, n_ctx, *, extra=False, rot=0.0, n=100, param="bspline", quality=0.8):
+    """n_ctx rows of one cell with plausible metrics and timings."""
+    ee = task != SIMPLE
+    key = f"{task[:6]}-{method}-{int(extra)}-{rot:g}-{n}-{param}"
+    out = []
+    for i in range(n_ctx):
+        q = float(np.clip(quality - 0.25 * extra + rng.normal(0, 0.12), 0.0, 1.0))
+        grad = 0.0 if method in ("cvae", "dprior") else 0.3 + 0.05 * rng.random()
+        net = 0.0 if method in ("gp-cost", "rrtconnect-cost") else 0.05 + 0.01 * rng.random() + 1e-4 * n
+        sampling = net + 0.005
+        costs = {f"time_cost_{c}": grad * w for c, w in zip(COSTS, (0.1, 0.1, 0.35, 0.05, 0.3, 0.02, 0.08))}
+        out.append(
+            {
+                "cell_key": key,
+                "context_index": i,
+                "task": task,
+                "method": method,
+                "parametrization": param,
+                "preset": "official",
+                "sampler": "ddim" if method in ("mpd", "dprior", "dprior-cost") else None,
+                "extra_objects": extra,
+                "rotation_deg": rot,
+                "n_samples": n,
+                "seed": 0,
+                "overrides": "",
+                "success": float(rng.random() < q + 0.15),
+                "fraction_valid": q,
+                "n_valid": q * n,
+                "vendi": 1 + q * n * 0.6 * rng.random(),
+                "ee_pos_error": (0.02 + 0.05 * rng.random()) if ee else 0.0,
+                "ee_ori_error_deg": (1 + 8 * rng.random()) if ee else 0.0,
+                "smoothness": (40 if param == "bspline" else 160) * (1 + 0.3 * rng.random()),
+                "path_length": 2 + rng.random(),
+                "best_path_length": 1.5 + 0.5 * rng.random() + (0.4 if method == "rrtconnect-cost" else 0.0),
+                "time_total": sampling + grad + 0.01 + (1.5 if method == "rrtconnect-cost" else 0.0),
+                "time_sampling": sampling if net else np.nan,
+                "time_network": net if net else np.nan,
+                "time_cost_gradient": grad if grad else np.nan,
+                **({k: v for k, v in costs.items()} if grad else {k: np.nan for k in costs}),
+                "n_cost_gradient_calls": 20.0 if grad else np.nan,
+                "run_id": "synthetic-0123abcd-89abcdef",
+                "spec_name": "synthetic",
+                "spec_hash": "0123abcd4567",
+                "git_commit": "89abcdef" * 5,
+                "git_dirty": False,
+                "task_hash": f"{task}-hash",
+                "dataset_id": "ds01",
+                "dataset_hash": f"{task}-data",
+                "model_hash": "" if method in ("gp-cost", "rrtconnect-cost") else f"{method}-model",
+                "device": "cpu",
+                "libraries": "python=3.11,torch=2.13.0+cpu",
+            }
+        )
+    return out
+
+
+def synthetic_results(n_ctx: int = 5, seed: int = 0, small: bool = False) -> pd.DataFrame:
+    """Cells for every figure kind: Fig. 6 (two tasks x all methods x both scenes), rotation, batch sizes with
+    RRTConnect+Cost (Fig. 10), B-spline vs waypoints. ``small``: every kind on the 2-D task with three methods
+    (cheap to draw)."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    tasks, methods = ((SIMPLE,), ("gp-cost", "mpd", "rrtconnect-cost")) if small else ((SIMPLE, WAREHOUSE), METHODS)
+    sweep = SIMPLE if small else WAREHOUSE
+    batch = SIMPLE if small else SPHERES
+    for task in tasks:
+        for m in methods:
+            for extra in (False, True):
+                rows += _rows(rng, task, m, n_ctx, extra=extra, quality=0.4 + 0.08 * METHODS.index(m))
+    for m in ("gp-cost", "mpd"):
+        for rot in (10.0, 20.0):
+            rows += _rows(rng, sweep, m, n_ctx, rot=rot, quality=0.7 - rot / 60)
+    for n in (1, 10) if small else (1, 10, 100):
+        rows += _rows(rng, batch, "mpd", n_ctx, extra=True, n=n, quality=0.5 + n / 300)
+    if not small:
+        rows += _rows(rng, batch, "rrtconnect-cost", n_ctx, extra=True, n=1, quality=0.6)
+    rows += _rows(rng, SIMPLE, "mpd", n_ctx, extra=True, param="waypoints")
+    return pd.DataFrame(rows)
+
+
+def make_run(tmp: Path, n_ctx: int = 5, histories: bool = True, small: bool = False) -> Path:
+    """A run folder with the synthetic table, a manifest and (optionally) one recorded MPD context per scene."""
+    from test_recording import fake_history
+
+    run = tmp / "synthetic-0123abcd-89abcdef"
+    run.mkdir(parents=True)
+    df = synthetic_results(n_ctx, small=small)
+    df.to_parquet(run / "results.parquet", index=False)
+    cells = df.drop_duplicates("cell_key")
+    axes = [
+        "task",
+        "method",
+        "parametrization",
+        "preset",
+        "sampler",
+        "extra_objects",
+        "rotation_deg",
+        "n_samples",
+        "seed",
+    ]
+    manifest = {
+        "run_id": run.name,
+        "spec_name": "synthetic",
+        "spec_hash": "0123abcd4567",
+        "spec_path": "tests/synthetic.toml",
+        "spec": {"name": "synthetic", "description": "every figure kind, synthetic numbers"},
+        "cells": [{"key": r["cell_key"], **{a: r[a] for a in axes}} for _, r in cells.iterrows()],
+        "executor": "local",
+        "workers": 1,
+        "device": "cpu",
+        "provenance": {"git_commit": "89abcdef" * 5, "git_dirty": False, "libraries": {"torch": "2.13.0+cpu"}},
+        "started_at": 1_700_000_000.0,
+        "finished_at": 1_700_000_100.0,
+        "status": "completed",
+        "artifacts": {SIMPLE: {"task_hash": "abc", "dataset_id": "ds01", "dataset_hash": "def", "models": {}}},
+    }
+    (run / "manifest.json").write_text(json.dumps(manifest, default=lambda x: x.item()))
+    if histories:
+        (run / "histories").mkdir()
+        for extra in (False,) if small else (False, True):
+            key = cells[
+                (cells.task == SIMPLE)
+                & (cells.method == "mpd")
+                & (cells.extra_objects == extra)
+                & (cells.parametrization == "bspline")
+            ]["cell_key"].iloc[0]
+            row = {
+                "cell_key": key,
+                "context_index": 0,
+                "task": SIMPLE,
+                "method": "mpd",
+                "extra_objects": extra,
+                "rotation_deg": 0.0,
+                "parametrization": "bspline",
+                "n_samples": 100,
+            }
+            np.savez_compressed(
+                run / "histories" / f"{key}-ctx0.npz",
+                **fake_history(SIMPLE, B=6, S=4, seed=int(extra)),
+                row_json=np.array(json.dumps(row)),
+            )
+    return run
+
+
+def _png(path: Path) -> None:
+    data = path.read_bytes()
+    assert data[:8] == PNG and len(data) > 3_000, path
+
+
+@pytest.fixture(scope="module")
+def prepared() -> pd.DataFrame:
+    return prepare(synthetic_results())
+
+
+@pytest.mark.parametrize("kind", rf.FIGURES, ids=lambda k: k.name)
+def test_every_figure_kind_is_made(prepared, kind, tmp_path):
+    from mpd.viz.report import _save
+
+    fig = kind.make(prepared)
+    assert fig is not None, kind.name
+    rf.add_caption(fig, "spec synthetic (0123abcd4567) · commit 89abcdef")
+    pdf = kind.name == "rotation"  # one PDF is enough to know the path works; PDFs of swarms are slow
+    _save(fig, tmp_path / kind.name, formats=("png", "pdf") if pdf else ("png",), dpi=80)
+    _png(tmp_path / f"{kind.name}.png")
+    if pdf:
+        assert (tmp_path / f"{kind.name}.pdf").read_bytes()[:4] == b"%PDF"
+
+
+def test_figures_skip_cleanly_without_their_cells(prepared):
+    only_main = prepared[(prepared.rotation_deg == 0) & (prepared.parametrization == "bspline")]
+    only_main = only_main[only_main.task != SPHERES]
+    made = {k.name: k.make(only_main) for k in rf.FIGURES}
+    assert made["swarm"] is not None and made["timing"] is not None
+    for name in ("rrtconnect_vs_mpd", "smoothness_kde", "parametrization_time", "rotation", "batch_size"):
+        assert made[name] is None, name
+    no_mpd = only_main[only_main.method != "mpd"]
+    assert rf.timing_figure(no_mpd) is None
+
+
+def test_main_slice_keeps_the_paper_setting(prepared):
+    d, chosen = main_slice(prepared)
+    assert set(d.rotation_deg) == {0.0} and set(d.parametrization) == {"bspline"}
+    assert set(d[d.task == SPHERES].n_samples) == {100, 1} and chosen["n_samples"] == 100
+    assert {TRAIN, EXTRA} == set(d.scene)
+
+
+def test_paper_numbers_beside_ours(prepared):
+    t, sentences = paper_comparison(prepared)
+    nums = paper_numbers()
+    assert len(nums) >= 20 and all(n["sentence"] for n in nums)
+    row = t[(t.task == WAREHOUSE) & (t.method == "MPD") & (t.metric == "fraction_valid")].iloc[0]
+    assert row.paper == 73.5 and row.scene == EXTRA
+    ours = prepared[
+        (prepared.task == WAREHOUSE)
+        & (prepared.method == "mpd")
+        & prepared.extra_objects
+        & (prepared.rotation_deg == 0)
+    ]["fraction_valid"].mean()
+    assert row.ours == pytest.approx(100 * ours)
+    # the Spheres3D timing number: the 100-sample MPD cell, not the batch-size ones
+    tt = t[(t.task == SPHERES) & (t.metric == "time_total")].iloc[0]
+    assert tt.paper == 0.56 and tt.n_samples == 100
+    assert "97%" in sentences[0]
+
+
+def test_paper_table_markdown(prepared):
+    md = paper_table(prepared)
+    assert "| 73.5% |" in md and "| 96.0% |" in md and "| 2.00 cm |" in md
+    assert "“For example, MPD increases the mean validity fraction of Dprior from 18.4 to 73.5%" in md
+
+
+def test_report_builds_and_is_deterministic(tmp_path):
+    run = make_run(tmp_path, n_ctx=3, small=True)
+    fast = {"formats": ("png",), "dpi": 60}  # what is checked here is the Markdown; figures: the test above
+    index = build_report(run, recordings=False, **fast)
+    text = index.read_text()
+    tables = {p: (run / "report" / p).read_text() for p in ("summary.md", "paper.md", "timing.md")}
+    for kind in rf.FIGURES:
+        assert f"figures/{kind.name}.png" in text, kind.name
+        _png(run / "report" / "figures" / f"{kind.name}.png")
+    for stem in (f"denoising-{SIMPLE}-train", f"trajectories-{SIMPLE}-train"):
+        _png(run / "report" / "figures" / f"{stem}.png")
+        assert f"figures/{stem}.png" in text
+    assert "0123abcd4567" in text and "89abcdef" in text and "synthetic.toml" in text
+    assert "Not produced" not in text
+    index2 = build_report(run, recordings=False, **fast)
+    assert index2.read_text() == text
+    assert all((run / "report" / p).read_text() == s for p, s in tables.items())
+
+
+def test_report_on_a_partial_run_skips_figures(tmp_path):
+    run = tmp_path / "partial"
+    run.mkdir()
+    df = synthetic_results(3)
+    df = df[(df.task == SIMPLE) & (df.method.isin(["gp-cost", "dprior"])) & (df.parametrization == "bspline")]
+    df.to_parquet(run / "results.parquet", index=False)
+    text = build_report(run, recordings=False, formats=("png",), dpi=60).read_text()
+    assert "figures/swarm.png" in text and "Not produced" in text
+    assert "None of the" in (run / "report" / "paper.md").read_text()
