@@ -61,6 +61,7 @@ class Runner:
         device: str | None = None,
         progress: bool = True,
         mlflow: bool = False,
+        record: bool = True,
     ):
         if executor not in ("local", "ray"):
             raise ValueError(f"unknown executor {executor!r} (local, ray)")
@@ -73,6 +74,7 @@ class Runner:
         self.fresh = fresh
         self.progress = progress
         self.mlflow = mlflow
+        self.record = record
         from mpd.device import default_device
 
         dev = device or (spec.data.device if spec.data.device != "auto" else None)
@@ -231,6 +233,7 @@ class Runner:
             store.append(res.cell_key, res.row)
             if res.history is not None:
                 save_history(self.run_dir, res)
+                self._record(res)
             if on_result is not None:
                 on_result(res)
             bar.set_postfix_str(
@@ -248,6 +251,17 @@ class Runner:
                 self._execute_pool(units, done)
         finally:
             bar.close()
+
+    def _record(self, res: UnitResult) -> None:
+        """Stream a recorded (cell, context) to its Rerun recording as soon as it is planned."""
+        if not self.record:
+            return
+        from mpd.viz.recording import record_history, recording_path
+
+        try:
+            record_history(recording_path(self.run_dir, res.row), res.row["task"], res.row, res.history)
+        except Exception as e:  # a recording must never cost the run its results
+            log.warning("recording of %s context %s failed: %s", res.cell_key, res.row["context_index"], e)
 
     def _execute_pool(self, units: list[Unit], done) -> None:
         import multiprocessing as mp
