@@ -1,0 +1,203 @@
+"""The planner interface: every registered planner returns the same structure; MPD without guidance is Dprior bit for
+bit; guidance never moves a sample more than delta; bad input to `mpd plan` fails before any work.
+
+Diffusion and CVAE planners run with small, randomly initialised networks here: the structure and the sampling
+maths do not depend on the weights (sample quality is measured by the experiments, not by unit tests).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from mpd.models.checkpoint import LoadedModel, build_network
+from mpd.models.context import context_keys
+from mpd.models.normalizer import Normalizer
+from mpd.planners import PLANNERS, Context, make_planner
+from mpd.planners import mpd as mpd_module
+from mpd.tasks import load_task
+from mpd.tasks.spec import ModelSpec
+from mpd.trajectory import make_parametrization
+
+SMALL = ModelSpec(unet_dim=8, unet_dim_mults=[1, 2], context_dim=8, context_layers=1, time_emb_dim=8)
+
+
+def random_model(task, kind: str, parametrization: str = "bspline", seed: int = 0) -> LoadedModel:
+    param = make_parametrization(task, parametrization)
+    ctx_kind = "goal_ee_pose" if task.ee_goal else "goal_joint_position"
+    torch.manual_seed(seed)
+    net = build_network(kind, task.dof, param.n_free, ctx_kind, SMALL).eval().requires_grad_(False)
+    lo, hi = task.robot.q_min.float(), task.robot.q_max.float()
+    norms = {k: Normalizer(lo, hi) for k in context_keys(ctx_kind) if k in ("q_start", "q_goal")}
+    if task.ee_goal:
+        norms["ee_pos"] = Normalizer(-torch.ones(3), torch.ones(3))
+    meta = {
+        "task_name": task.name,
+        "parametrization": parametrization,
+        "horizon": param.n_free,
+        "dof": task.dof,
+        "context_kind": ctx_kind,
+    }
+    return LoadedModel(kind, net, Normalizer(lo, hi), norms, meta, path=f"<random {kind}>")
+
+
+def context_of(task) -> Context:
+    # a fixed, collision-free start and goal of each task used here
+    q = {
+        "EnvSimple2D-RobotPointMass2D": ([-0.2, -0.9], [-0.2, 0.9]),
+        "EnvPlanar4Link-RobotPlanar4Link": ([1.2, 0.3, 0.2, -0.3], [-1.6, 0.4, -0.3, 0.4]),
+    }[task.name]
+    qs, qg = (torch.tensor(v, dtype=torch.float32) for v in q)
+    if task.ee_goal:
+        p, r = task.robot.ee_pose(qg.double())
+        return Context(qs, None, p.float(), r.float())
+    return Context(qs, qg)
+
+
+def build(name: str, task, **kw):
+    kind = PLANNERS[name].model_kind
+    model = random_model(task, kind) if kind else None
+    return make_planner(name, task, model=model, device="cpu", **kw)
+
+
+@pytest.mark.parametrize("task_name", ["EnvSimple2D-RobotPointMass2D", "EnvPlanar4Link-RobotPlanar4Link"])
+@pytest.mark.parametrize("name", sorted(PLANNERS))
+def test_every_planner_returns_the_same_structure(name, task_name):
+    task = load_task(task_name)
+    planner = build(name, task, extra_objects=True, overrides={"rrt_time_limit": 5.0})
+    ctx = context_of(task)
+    res = planner.plan(ctx, 6, seed=3, record_history=True)
+    param = planner.param
+    assert res.free.shape == (6, param.n_free, task.dof)
+    assert res.control_points.shape == (6, param.n_params, task.dof)
+    for x in (res.dense.q, res.dense.dq_ds, res.dense.ddq_ds2):
+        assert x.shape == (6, param.n_points, task.dof) and torch.isfinite(x).all()
+    assert torch.allclose(res.dense.q[:, 0], ctx.q_start.expand(6, -1), atol=1e-5)
+    if ctx.q_goal is not None:
+        assert torch.allclose(res.dense.q[:, -1], ctx.q_goal.expand(6, -1), atol=1e-5)
+    assert res.timings["total"] > 0 and all(np.isfinite(v) for v in res.timings.values())
+    assert res.history and all(h.free.shape == res.free.shape for h in res.history)
+    if planner.uses_cost:
+        assert res.timings["cost_gradient"] > 0
+    again = build(name, task, extra_objects=True, overrides={"rrt_time_limit": 5.0}).plan(ctx, 6, seed=3)
+    assert torch.equal(res.free, again.free), "same seed, same trajectories"
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm"])
+def test_mpd_without_guidance_is_dprior_bit_for_bit(sampler):
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    model = random_model(task, "diffusion")
+    ctx = context_of(task)
+    ov = {"sampler": sampler}
+    unguided = make_planner(
+        "mpd", task, model=model, device="cpu", overrides={**ov, "guide_fraction": 0.0, "ddpm_guide_fraction": 0.0}
+    )
+    dprior = make_planner("dprior", task, model=model, device="cpu", overrides=ov)
+    a, b = unguided.plan(ctx, 16, seed=7), dprior.plan(ctx, 16, seed=7)
+    assert torch.equal(a.free, b.free)
+    guided = make_planner("mpd", task, model=model, device="cpu", overrides=ov, extra_objects=True)
+    assert not torch.equal(guided.plan(ctx, 16, seed=7).free, b.free)
+
+
+@pytest.mark.parametrize("preset", ["official", "paper"])
+def test_guidance_never_moves_a_sample_more_than_delta(monkeypatch, preset):
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    delta = 0.05
+    planner = make_planner(
+        "mpd",
+        task,
+        model=random_model(task, "diffusion"),
+        device="cpu",
+        extra_objects=True,
+        preset=preset,
+        overrides={"max_perturb": delta, "guide_lr": 5.0},
+    )
+    moves = []
+    if preset == "official":
+        orig = mpd_module.project
+
+        def spy(x, anchor, max_perturb):
+            out = orig(x, anchor, max_perturb)
+            moves.append(float((out - anchor).abs().max()))
+            return out
+
+        monkeypatch.setattr(mpd_module, "project", spy)
+    else:
+        orig = mpd_module.optimize
+
+        def spy(x0, grad_fn, steps, lr, max_perturb, grad_clip, callback=None):
+            out = orig(x0, grad_fn, steps, lr, max_perturb, grad_clip, callback)
+            moves.append(float((out - x0).abs().max()))
+            return out
+
+        monkeypatch.setattr(mpd_module, "optimize", spy)
+    planner.plan(context_of(task), 32, seed=0)
+    s = planner.settings
+    assert len(moves) == (s.guided_steps(s.ddim_steps) * (s.n_inner_steps if preset == "official" else 1))
+    assert max(moves) <= delta + 1e-6
+    assert max(moves) > delta / 2, "with a large step size the guidance should reach the bound"
+
+
+def test_presets_differ_where_the_paper_and_configs_differ():
+    from mpd.planners import planner_settings
+
+    task = load_task("EnvWarehouse-RobotPanda")
+    off, pap = planner_settings(task, "official"), planner_settings(task, "paper")
+    assert off.guided_steps(15) == 3 and pap.guided_steps(15) == 3  # Warehouse: fraction 0.2 -> ceil(3)
+    assert planner_settings(load_task("EnvSpheres3D-RobotPanda")).guided_steps(15) == 5
+    assert (off.eta, pap.eta) == (0.5, 0.0) and (off.grad_clip, pap.grad_clip) == (1.0, None)
+    assert (off.cost_preset, pap.cost_preset) == ("official", "paper")
+    with pytest.raises(ValueError, match="guide_rate"):
+        planner_settings(task, "official", guide_rate=1.0)
+
+
+def _plan_cli(*args):
+    return subprocess.run([sys.executable, "-m", "mpd.cli", "plan", *args], capture_output=True, text=True)
+
+
+@pytest.mark.parametrize(
+    ("args", "expect"),
+    [
+        (["--planner", "mpdd"], "unknown planner 'mpdd'"),
+        (
+            ["--planner", "gp-cost", "--start", "0.1,0.2,0.3", "--goal", "0.5,0.5"],
+            "has 3 values, the robot has 2 joints",
+        ),
+        (["--planner", "gp-cost", "--start", "1.5,0.0", "--goal", "0.5,0.5"], "joint 0 = 1.5 is outside its limits"),
+        (["--planner", "gp-cost", "--start", "-0.37,-0.12", "--goal", "0.5,0.5"], "in collision with the environment"),
+        (["--planner", "gp-cost", "--start", "-0.2,-0.9"], "give both a start and a goal"),
+    ],
+)
+def test_plan_cli_rejects_bad_input_before_any_work(tmp_path, args, expect):
+    r = _plan_cli("--task", "EnvSimple2D-RobotPointMass2D", "--out", str(tmp_path / "o"), *args)
+    assert r.returncode == 2, r.stderr
+    assert expect in r.stderr and r.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "o").exists()
+
+
+def test_plan_cli_writes_outputs(tmp_path):
+    out = tmp_path / "gp"
+    r = _plan_cli(
+        "--task",
+        "EnvSimple2D-RobotPointMass2D",
+        "--planner",
+        "gp-cost",
+        "--n-samples",
+        "8",
+        "--start",
+        "-0.2,-0.9",
+        "--goal",
+        "-0.2,0.9",
+        "--out",
+        str(out),
+    )
+    assert r.returncode == 0, r.stderr
+    import json
+
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["planner"] == "gp-cost" and len(doc["contexts"]) == 1 and "total" in doc["contexts"][0]["timings"]
+    assert (out / "trajectories.png").stat().st_size > 0 and (out / "trajectories.npz").exists()
