@@ -473,3 +473,20 @@ def test_training_arrays_reject_bad_input():
 def test_build_network_kinds():
     assert isinstance(build_network("diffusion", 2, 8, "goal_joint_position", TINY), DiffusionModel)
     assert isinstance(build_network("cvae", 2, 8, "goal_joint_position", TINY), CVAE)
+
+
+def test_learning_rate_schedules():
+    import dataclasses
+    import math
+
+    from mpd.models.train import learning_rate
+    from mpd.tasks.spec import TrainingSpec
+
+    const = TrainingSpec(batch_size=8, steps=100, lr=3e-4)
+    assert all(learning_rate(const, s) == 3e-4 for s in (0, 50, 99))
+    cos = dataclasses.replace(const, lr=1e-3, lr_schedule="cosine", warmup_steps=10, lr_min_ratio=0.1)
+    assert learning_rate(cos, 0) == pytest.approx(1e-4 * (0.1 + 0.9 * 0.5 * (1 + math.cos(0))))
+    assert learning_rate(cos, 9) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 9 / 99))))
+    assert learning_rate(cos, 99) == pytest.approx(1e-4)
+    lrs = [learning_rate(cos, s) for s in range(10, 100)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))
