@@ -4,6 +4,7 @@ models its cells need, built only when missing (content-addressed by their input
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -190,19 +191,16 @@ def needs(spec, cells) -> list[Need]:
 
 
 def _content_hash(rd) -> str | None:
-    import json
-
     p = rd.data_dir / "lock.json"
     return json.loads(p.read_text()).get("content_hash") if p.exists() else None
 
 
-def resolve(spec, cells, progress: bool = True) -> dict[str, TaskArtifacts]:
+def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, TaskArtifacts]:
     """Datasets, evaluation contexts and models of every task of the cells, generated/trained when missing."""
     from mpd.data.contexts import evaluation_contexts
     from mpd.data.dataset import load_dataset
-    from mpd.models.train import train_model
 
-    out = {}
+    out, jobs = {}, []
     for task_name in sorted({c.p["task"] for c in cells}):
         task = load_task(task_name)
         ts = spec.data.tasks[task_name]
@@ -210,15 +208,48 @@ def resolve(spec, cells, progress: bool = True) -> dict[str, TaskArtifacts]:
         n_ctx = ts.n_contexts or spec.data.n_contexts
         ec = evaluation_contexts(task, n_ctx)
         contexts = EvalContexts(ec.q_start, ec.q_goal, ec.ee_pos, ec.ee_rot)
-        art = TaskArtifacts(task.name, task.file_hash, ds.info["identity"], ds.info["content_hash"], contexts)
+        out[task_name] = TaskArtifacts(
+            task.name, task.file_hash, ds.info["identity"], ds.info["content_hash"], contexts
+        )
         for kind, par in sorted(_model_kinds(cells, task_name)):
-            arrays = training_arrays(task, ds, par)
-            path = Path(
-                train_model(arrays, kind, task.spec.model, training_settings(task, ts), seed=0, progress=progress)
+            jobs.append(
+                (task_name, kind, par, training_arrays(task, ds, par), task.spec.model, training_settings(task, ts))
             )
-            import json
-
-            meta = json.loads((path.parent / "meta.json").read_text())
-            art.models[(kind, par)] = ModelArtifact(kind, par, meta["identity"], path, file_sha256(path))
-        out[task_name] = art
+    for (task_name, kind, par, *_), path in zip(jobs, train_models(jobs, workers, progress)):
+        meta = json.loads((path.parent / "meta.json").read_text())
+        out[task_name].models[(kind, par)] = ModelArtifact(kind, par, meta["identity"], path, file_sha256(path))
     return out
+
+
+def _train_job(job, progress: bool, threads: int | None) -> Path:
+    import torch
+
+    from mpd.models.train import train_model
+
+    if threads:
+        torch.set_num_threads(threads)
+    _, kind, _, arrays, model_spec, train_spec = job
+    return Path(train_model(arrays, kind, model_spec, train_spec, seed=0, progress=progress))
+
+
+def train_models(jobs: list, workers: int, progress: bool) -> list[Path]:
+    """Train the missing models, several at once (one process and one thread each) when workers allow: on a small
+    CPU two single-threaded trainings finish in about the time of one two-threaded training."""
+    from mpd.models.train import model_dir, model_identity
+
+    def exists(job) -> bool:
+        task_name, kind, par, arrays, ms, ts = job
+        ident = model_identity(arrays.dataset_hash, kind, par, arrays.parametrization_settings, ms, ts, 0)
+        return (model_dir(task_name, kind, par, ident) / "model.pt").is_file()
+
+    missing = [j for j in jobs if not exists(j)]
+    n = min(max(1, workers), len(missing))
+    if n <= 1:
+        return [_train_job(j, progress, None) for j in jobs]
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
+        futures = {id(j): pool.submit(_train_job, j, progress, 1) for j in missing}
+        done = {k: f.result() for k, f in futures.items()}
+    return [done[id(j)] if id(j) in done else _train_job(j, progress, None) for j in jobs]

@@ -73,7 +73,11 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
         click.echo(f"report: {rep}")
         recs = sorted((out / "recordings").glob("*.rrd")) if (out / "recordings").exists() else []
         if recs:
-            click.echo(f"recording: {recs[0]}" + (f" (+{len(recs) - 1} more)" if len(recs) > 1 else ""))
+            # the highlight first: MPD with the extra objects, the paper's point
+            recs.sort(key=lambda p: (("-mpd-extra" not in p.name), ("-mpd-" not in p.name), p.name))
+            click.echo(
+                f"recording: {recs[0]}" + (f" (+{len(recs) - 1} more in {recs[0].parent})" if len(recs) > 1 else "")
+            )
         click.echo(f"open the recording: nox -s view -- {out.name}   (or: mpd view {out.name} --web)")
 
 

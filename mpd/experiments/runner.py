@@ -127,7 +127,7 @@ class Runner:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         store = RowStore(self.run_dir)
         manifest = self._manifest(status="resolving")
-        resolved = artifacts.resolve(self.spec, self.cells, progress=self.progress)
+        resolved = artifacts.resolve(self.spec, self.cells, progress=self.progress, workers=self.workers)
         manifest["artifacts"] = {k: v.summary() for k, v in resolved.items()}
         manifest["status"] = "running"
         write_json(manifest, self.run_dir / "manifest.json")
