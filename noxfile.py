@@ -60,7 +60,7 @@ def lint(session: nox.Session) -> None:
 def demo(session: nox.Session) -> None:
     """The embedded default: the `quick` spec end to end, then where to find the report and the recording."""
     b = _venv(session)
-    session.run(str(b / "mpd"), "run", "quick", "--report", *session.posargs, external=True)
+    session.run(str(b / "mpd"), "run", "quick", "--workers", "2", "--report", *session.posargs, external=True)
 
 
 @nox.session(venv_backend="none")
