@@ -192,7 +192,8 @@ def contexts_cache_path(task: Task, n: int) -> Path:
 
 def _cached_sets(task: Task) -> dict[int, Path]:
     out = {}
-    for p in contexts_cache_path(task, 0).parent.glob(f"{task.name}-{task_data_hash(task)[:16]}-n*-v{CONTEXTS_VERSION}.npz"):
+    pattern = f"{task.name}-{task_data_hash(task)[:16]}-n*-v{CONTEXTS_VERSION}.npz"
+    for p in contexts_cache_path(task, 0).parent.glob(pattern):
         try:
             out[int(p.name.rsplit("-n", 1)[1].split("-v")[0])] = p
         except ValueError:
