@@ -1,0 +1,15 @@
+"""Acceleration cost: official 1/2 |q''(s)|_2 (the authors' configs), paper 1/2 |q''(s)|^2, integrated."""
+
+from __future__ import annotations
+
+from mpd.costs.base import Cost, CostInput, CostTerm, register
+from mpd.costs.smoothness import derivative_penalty
+
+
+@register
+class AccelerationCost(Cost):
+    name = "acceleration"
+
+    def __call__(self, inp: CostInput, weight: float = 1.0) -> CostTerm:
+        value, g = derivative_penalty(inp.dense.ddq_ds2, self.weights(inp), weight, squared=self.preset == "paper")
+        return CostTerm(value, g_ddq=g)

@@ -1,0 +1,394 @@
+"""Motion-planning costs: analytic gradients against autograd references, the composite's rules, the EE cost.
+
+Each autograd reference rebuilds a cost from differentiable pieces that share no code with ``mpd.costs``: the
+dense trajectory, ``Robot.kinematics`` (autograd runs through it), the analytic SDF ``Environment.sdf``, and
+an SE(3) log written here with acos / V^-1 formulas. Inputs are random (seeded) trajectories that put every
+cost term to work; ReLU boundaries, max-pair switches and SDF kinks have measure zero, so random inputs avoid
+them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from mpd.costs import COSTS, CostFunction, CostInput
+from mpd.costs.base import spheres_vjp_sparse
+from mpd.costs.ee_pose import ee_pose_error
+from mpd.costs.sdf import sdf_batch_last
+from mpd.costs.se3 import se3_half_sq_log_grad, se3_log, so3_log
+from mpd.envs import Environment
+from mpd.tasks import load_task
+from mpd.tasks.task import Task
+from mpd.trajectory import make_parametrization
+
+F64 = torch.float64
+TOL = 1e-6  # relative error of a gradient (float64)
+
+# (task, extra objects, number of trajectories)
+CASES = {
+    "pointmass": ("EnvSimple2D-RobotPointMass2D", True, 3),
+    "planar4": ("EnvPlanar4Link-RobotPlanar4Link", False, 3),
+    "panda_spheres": ("EnvSpheres3D-RobotPanda", True, 2),
+    "panda_warehouse": ("EnvWarehouse-RobotPanda", False, 2),
+}
+
+
+# ----------------------------------------------------------------------------------------------- references
+def _hat(w: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(w[..., 0])
+    rows = [[z, -w[..., 2], w[..., 1]], [w[..., 2], z, -w[..., 0]], [-w[..., 1], w[..., 0], z]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def ref_so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Textbook log (away from 0 and pi): theta = acos((tr R - 1)/2), phi = theta vee(R - R^T) / (2 sin)."""
+    theta = torch.acos(((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1))
+    A = R - R.transpose(-1, -2)
+    w = torch.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], -1) / 2
+    return (theta / torch.sin(theta))[..., None] * w
+
+
+def ref_se3_log(T: torch.Tensor) -> torch.Tensor:
+    """[rho; phi] of 4x4 poses: rho = V^-1 t, V^-1 = I - A/2 + (1 - th sin th / (2 (1 - cos th))) A^2/th^2."""
+    phi = ref_so3_log(T[..., :3, :3])
+    th = phi.norm(dim=-1)[..., None, None]
+    A = _hat(phi)
+    Vinv = torch.eye(3, dtype=T.dtype) - A / 2 + (1 - th * torch.sin(th) / (2 * (1 - torch.cos(th)))) / th**2 * A @ A
+    return torch.cat([(Vinv @ T[..., :3, 3:])[..., 0], phi], -1)
+
+
+def _pose(p: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    T = torch.zeros(*p.shape[:-1], 4, 4, dtype=p.dtype)
+    T[..., :3, :3], T[..., :3, 3], T[..., 3, 3] = R, p, 1
+    return T
+
+
+def reference(task, param, env, preset: str, name: str, free, q_start, q_goal, ee_goal) -> torch.Tensor:
+    """Cost (B,) of one term, written independently with differentiable torch ops."""
+    d = param.dense(free, q_start, q_goal)
+    B, n, dof = d.q.shape
+    r = task.robot
+    w = torch.full((n,), d.duration / (n - 1), dtype=F64)
+    if preset == "official":
+        w[0] = w[-1] = w[0] / 2
+    integral = lambda c: (c * w).sum(-1)  # noqa: E731
+    if name in ("velocity", "acceleration"):
+        sq = (d.dq_ds if name == "velocity" else d.ddq_ds2).pow(2).sum(-1)
+        return integral(0.5 * sq if preset == "paper" else 0.5 * torch.sqrt(sq + 1e-12))
+    if name == "joint_limits":
+        e, T = 0.03, d.duration
+        terms = [(d.q, r.q_min + e, r.q_max - e)]
+        if r.dq_max is not None:
+            terms.append((d.dq_ds, -r.dq_max * T + e, r.dq_max * T - e))
+        if r.ddq_max is not None:
+            terms.append((d.ddq_ds2, -r.ddq_max * T**2 + e, r.ddq_max * T**2 - e))
+        c = sum(0.5 * (torch.relu(x - hi) + torch.relu(lo - x)).pow(2).sum(-1) for x, lo, hi in terms)
+        return integral(c)
+    if name in ("collision", "self_collision"):
+        centres = r.kinematics(d.q.reshape(-1, dof)).points.reshape(B, n, -1, 3)
+        if name == "collision":
+            sdf = env.sdf(centres[..., : task.dim], mode="analytic")
+            pen = r.sphere_radii + task.spec.collision.cost_margin - sdf
+            return integral(torch.relu(pen).sum(-1))
+        eps = 0.0 if preset == "official" else task.spec.collision.cost_margin
+        i, j = r.self_pairs[:, 0], r.self_pairs[:, 1]
+        dist = (centres[..., i, :] - centres[..., j, :]).norm(dim=-1)
+        pen = r.sphere_radii[i] + r.sphere_radii[j] + eps - dist
+        return integral(torch.relu(pen.max(-1).values))
+    assert name == "ee_pose"
+    kin = r.kinematics(d.q[:, -1])
+    gp, gR = ee_goal
+    if preset == "official":
+        Rt = kin.ee_rot.transpose(-1, -2)  # T^-1 = (R^T, -R^T p)
+        xi = ref_se3_log(_pose(gp, gR) @ _pose(-(Rt @ kin.ee_pos[..., None])[..., 0], Rt))
+        return 0.5 * xi.pow(2).sum(-1)
+    phi = ref_so3_log(gR.transpose(-1, -2) @ kin.ee_rot)
+    return 0.5 * (gp - kin.ee_pos).pow(2).sum(-1) + 0.5 * phi.pow(2).sum(-1)
+
+
+def analytic(task, param, env, preset, name, free, q_start, q_goal, ee_goal, sdf_mode="analytic"):
+    """Value (B,) and gradient w.r.t. the free rows of one cost of mpd.costs (no composite rules)."""
+    cost = COSTS[name](task, preset)
+    term = cost(CostInput(param.dense(free, q_start, q_goal), task, env, ee_goal, sdf_mode), 1.0)
+    return term.value, param.grad_to_free(term.g_q, term.g_dq, term.g_ddq)
+
+
+# ----------------------------------------------------------------------------------------------- inputs
+def _make_case(key: str, kind: str):
+    """Task, parametrization, env and a seeded float64 batch in which every cost term is active."""
+    name, extra, B = CASES[key]
+    from mpd.tasks import load_task
+
+    task = load_task(name)
+    param = make_parametrization(task, kind)
+    env = task.env(extra_objects=extra)
+    r = task.robot
+    g = torch.Generator().manual_seed(7)
+    q_start, q_end = r.random_q(B, g), r.random_q(B, g)
+    s = torch.linspace(0, 1, param.n_free, dtype=F64)[None, :, None]
+    free = (
+        q_start[:, None] * (1 - s)
+        + q_end[:, None] * s
+        + 0.3 * torch.randn(B, param.n_free, r.dof, generator=g, dtype=F64)
+    )
+    # position, velocity and acceleration limit violations: a zig-zag on the first joint, rows past q_max
+    free[0, 2:-2, 0] += 0.6 * (-1.0) ** torch.arange(param.n_free - 4)
+    free[1, param.n_free // 2 - 2 : param.n_free // 2 + 2] = r.q_max + 0.2
+    if len(r.self_pairs):
+        # a deep self collision in the middle of trajectory 0
+        cand = r.random_q(4000, g)
+        depth = -r.self_collision_distance(r.sphere_centres(cand)).min(-1).values
+        free[0, param.n_free // 2 - 2 : param.n_free // 2 + 2] = cand[depth.argmax()]
+    q_goal = None if task.ee_goal else q_end
+    ee_goal = None
+    if task.ee_goal:
+        # goal = the final pose turned by 0.5-2.5 rad and moved 0.1-0.3 m: away from the logs' singularities
+        q1 = param.dense(free, q_start).q[:, -1]
+        p1, R1 = r.ee_pose(q1)
+        axis = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=F64), dim=-1)
+        ang = 0.5 + 2 * torch.rand(B, 1, generator=g, dtype=F64)
+        Rg = torch.linalg.matrix_exp(_hat(axis * ang)) @ R1
+        pg = p1 + 0.1 + 0.2 * torch.rand(B, 3, generator=g, dtype=F64)
+        ee_goal = (pg, Rg)
+    return task, param, env, free, q_start, q_goal, ee_goal
+
+
+_CASES: dict = {}
+
+
+def case(key: str, kind: str):
+    if (key, kind) not in _CASES:
+        _CASES[key, kind] = _make_case(key, kind)
+    return _CASES[key, kind]
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).norm() / b.norm())
+
+
+# ----------------------------------------------------------------------------------------------- gradients
+@pytest.mark.parametrize("kind", ["bspline", "waypoints"])
+@pytest.mark.parametrize("preset", ["official", "paper"])
+@pytest.mark.parametrize("key", list(CASES))
+def test_gradients_match_autograd(key, preset, kind):
+    task, param, env, free, q_start, q_goal, ee_goal = case(key, kind)
+    names = [n for n, cls in COSTS.items() if cls.applicable(task)]
+    expected = {"pointmass": 4, "planar4": 6, "panda_spheres": 6, "panda_warehouse": 6}[key]
+    assert len(names) == expected
+    for name in names:
+        x = free.clone().requires_grad_(True)
+        ref = reference(task, param, env, preset, name, x, q_start, q_goal, ee_goal)
+        (g_ref,) = torch.autograd.grad(ref.sum(), x)
+        value, grad = analytic(task, param, env, preset, name, free, q_start, q_goal, ee_goal)
+        assert float(ref.detach().sum()) > 0, f"{name}: an inactive term tests nothing"
+        assert g_ref.norm() > 0, f"{name}: zero reference gradient"
+        # 1e-7: the Panda's fixed URDF rotations are orthonormal to 3e-8 only (parsed in float32), and the two
+        # SO(3) logs (atan2 here, acos in the reference) react differently to that
+        torch.testing.assert_close(value, ref.detach(), rtol=1e-7, atol=1e-12, msg=f"{name} value")
+        assert _rel(grad, g_ref) <= TOL, (
+            f"{key}/{preset}/{kind}/{name}: relative gradient error {_rel(grad, g_ref):.2e}"
+        )
+
+
+def test_panda_composite_vs_finite_differences():
+    task, param, env, free, q_start, _, ee_goal = case("panda_spheres", "bspline")
+    cf = CostFunction(task, param, env, preset="paper", sdf_mode="analytic")
+    res = cf(free, q_start, None, ee_goal)
+    g = torch.Generator().manual_seed(1)
+    h = 1e-6
+    for _ in range(3):
+        v = torch.randn(free.shape, generator=g, dtype=F64)
+        fd = (cf(free + h * v, q_start, None, ee_goal).total - cf(free - h * v, q_start, None, ee_goal).total) / (2 * h)
+        torch.testing.assert_close((res.grad * v).sum((1, 2)), fd, rtol=1e-5, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------- composite
+@pytest.mark.parametrize("kind", ["bspline", "waypoints"])
+@pytest.mark.parametrize("preset", ["official", "paper"])
+def test_composite_weighted_sum_and_ee_rule(preset, kind):
+    task, param, env, free, q_start, q_goal, ee_goal = case("panda_spheres", kind)
+    cf = CostFunction(task, param, env, preset=preset, sdf_mode="analytic", profile=True)
+    res = cf(free, q_start, q_goal, ee_goal)
+    weights = task.cost_weights(preset)
+    assert set(res.values) == set(COSTS)
+    total = sum(getattr(weights, k) * v for k, v in res.values.items())
+    torch.testing.assert_close(res.total, total, rtol=1e-12, atol=0)
+    grads = {}
+    for name in res.values:
+        _, grads[name] = analytic(task, param, env, preset, name, free, q_start, q_goal, ee_goal)
+    others = sum(getattr(weights, k) * g for k, g in grads.items() if k != "ee_pose")
+    ee = weights.ee_pose * grads["ee_pose"]
+    if preset == "official":
+        # the authors' rule: the final configuration (last free row) follows the EE cost only
+        torch.testing.assert_close(res.grad[:, :-1], others[:, :-1], rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(res.grad[:, -1], ee[:, -1], rtol=1e-10, atol=1e-10)
+        assert ee[:, :-1].abs().max() == 0  # q(1) depends on the last free row only
+    else:
+        torch.testing.assert_close(res.grad, others + ee, rtol=1e-10, atol=1e-10)
+    assert {"dense", "fk", "chain_rule", *res.values} == set(res.timings)
+    assert all(t >= 0 for t in res.timings.values())
+
+
+def test_skipped_costs():
+    pm = load_task("EnvSimple2D-RobotPointMass2D")
+    param = make_parametrization(pm, "bspline")
+    for preset in ("official", "paper"):
+        cf = CostFunction(pm, param, pm.env(), preset=preset)
+        assert set(cf.names) == {
+            "velocity",
+            "acceleration",
+            "joint_limits",
+            "collision",
+        }  # no EE, no self pairs
+    cf = CostFunction(pm, param, pm.env(), weights={"velocity": 0.0, "acceleration": 0})
+    assert set(cf.names) == {"joint_limits", "collision"}
+    # the point mass has no velocity / acceleration limits: the joint-limit cost has no q', q'' terms
+    B = 2
+    q = torch.zeros(B, 2, dtype=F64)
+    inp = CostInput(param.dense(torch.zeros(B, param.n_free, 2, dtype=F64), q, q), pm, pm.env())
+    term = COSTS["joint_limits"](pm, "official")(inp)
+    assert term.g_dq is None and term.g_ddq is None
+    # self collision switched off in the task file
+    p4 = load_task("EnvPlanar4Link-RobotPlanar4Link")
+    spec = dataclasses.replace(p4.spec, collision=dataclasses.replace(p4.spec.collision, self_collision=False))
+    p4_off = Task(spec, p4.path)
+    assert "self_collision" not in CostFunction(p4_off, make_parametrization(p4_off), p4_off.env()).names
+    assert "self_collision" in CostFunction(p4, make_parametrization(p4), p4.env()).names
+    with pytest.raises(ValueError, match="unknown cost names"):
+        CostFunction(pm, param, pm.env(), weights={"smoothness": 1.0})
+    with pytest.raises(ValueError, match="ee_goal"):
+        CostFunction(p4, make_parametrization(p4), p4.env())(
+            torch.zeros(1, make_parametrization(p4).n_free, 4), torch.zeros(1, 4)
+        )
+
+
+@pytest.mark.parametrize("key", ["pointmass", "planar4", "panda_spheres"])
+def test_nearest_sdf_matches_grid_and_gradient_direction(key):
+    task, param, env, free, q_start, q_goal, ee_goal = case(key, "bspline")
+    if task.dim == 3:  # a coarser grid of the same scene (fixed + extra objects): the 2 cm one takes ~10 s to build
+        env = Environment(dataclasses.replace(env.spec, sdf_cell_size=0.05), extra_objects=True)
+    kin = task.robot.kinematics(param.dense(free, q_start, q_goal).q.reshape(-1, task.dof))
+    X = kin.points_t[:, : task.dim].float()
+    d, g = sdf_batch_last(env, X, "nearest")
+    d_ref, g_ref = env.sdf(X.permute(2, 0, 1), grad=True, mode="nearest")
+    assert torch.equal(d, d_ref.t()) and torch.equal(g, g_ref.permute(1, 2, 0))
+    # outside the grid box the distance to the box is added, as GridSDF.query does
+    far = X + 10.0
+    assert torch.equal(sdf_batch_last(env, far, "nearest")[0], env.sdf(far.permute(2, 0, 1), mode="nearest").t())
+    # the nearest-node gradient points the way of the exact one (these trajectories run deep into obstacles)
+    _, g_near = analytic(task, param, env, "official", "collision", free, q_start, q_goal, ee_goal, "nearest")
+    _, g_exact = analytic(task, param, env, "official", "collision", free, q_start, q_goal, ee_goal, "analytic")
+    cos = torch.nn.functional.cosine_similarity(g_near.flatten(1), g_exact.flatten(1), dim=1)
+    assert (cos > 0.9).all(), cos
+
+
+@pytest.mark.parametrize("key", list(CASES))
+def test_sparse_and_dense_jacobian_products_agree(key, monkeypatch):
+    """The collision cost's two Jacobian products (dense over all spheres, sparse over active entries)."""
+    import mpd.costs.collision as collision
+
+    task, param, env, free, q_start, q_goal, ee_goal = case(key, "bspline")
+    out = {}
+    for frac in (0.0, 1.0):
+        monkeypatch.setattr(collision, "SPARSE_FRACTION", frac)
+        out[frac] = analytic(task, param, env, "official", "collision", free, q_start, q_goal, ee_goal)[1]
+    torch.testing.assert_close(out[0.0], out[1.0], rtol=1e-12, atol=1e-12)
+    # and spheres_vjp_sparse on arbitrary entries, root-link spheres included (the point mass has only those)
+    r = task.robot
+    kin = r.kinematics(r.random_q(40, torch.Generator().manual_seed(2)))
+    g = torch.Generator().manual_seed(3)
+    mask = torch.rand(r.n_spheres, 40, generator=g) < 0.3
+    G = torch.randn(r.n_spheres, 3, 40, generator=g, dtype=F64) * mask[:, None]
+    if task.dim == 2:
+        G[:, 2] = 0
+    flat = mask.reshape(-1).nonzero().squeeze(1)
+    sparse = spheres_vjp_sparse(r, kin, flat, G.permute(0, 2, 1).reshape(-1, 3)[flat, : task.dim], 40)
+    torch.testing.assert_close(sparse, r.spheres_vjp(kin, G.permute(2, 0, 1)), rtol=1e-12, atol=1e-12)
+
+
+def test_self_collision_culling_is_exact():
+    """The cluster test never drops an active pair: the same max as over all pairs, on configurations close to
+    contact (float32, the planner's dtype)."""
+    from mpd.costs.self_collision import SelfCollisionCost
+
+    for name in ("EnvSpheres3D-RobotPanda", "EnvPlanar4Link-RobotPlanar4Link"):
+        task = load_task(name)
+        r = task.robot
+        q = r.random_q(20000, torch.Generator().manual_seed(11), dtype=torch.float32)
+        kin = r.kinematics(q)
+        cost = SelfCollisionCost(task, "official")
+        pen_all = (-r.self_collision_distance(kin.points)).max(-1).values
+        cand = cost.candidates(kin.points_t)
+        assert cand.numel() < 0.25 * len(q)  # the test culls something
+        pen_cand = torch.full_like(pen_all, -1.0)
+        pen_cand[cand] = cost.deepest_pair(kin.points_t[cost._used].index_select(2, cand))[0]
+        hit = pen_all > 0
+        assert hit.sum() > 100
+        torch.testing.assert_close(pen_cand[hit], pen_all[hit], rtol=0, atol=1e-6)
+        assert (pen_cand[~hit] <= 0).all()
+
+
+# ----------------------------------------------------------------------------------------------- EE pose
+def test_ee_cost_zero_at_goal():
+    g = torch.Generator().manual_seed(3)
+    R = torch.linalg.matrix_exp(_hat(torch.randn(5, 3, generator=g, dtype=F64)))
+    p = torch.randn(5, 3, generator=g, dtype=F64)
+    for preset in ("official", "paper"):
+        value, g_pos, g_rot = ee_pose_error(preset, p, R, p.clone(), R.clone())
+        assert value.abs().max() < 1e-28 and g_pos.abs().max() < 1e-14 and g_rot.abs().max() < 1e-14
+    # through the robot: the goal is the final pose of the trajectories (the Panda's URDF rotations are
+    # orthonormal to 3e-8 only, hence the looser bound)
+    task = load_task("EnvSpheres3D-RobotPanda")
+    param = make_parametrization(task, "bspline")
+    free = task.robot.random_q(5 * param.n_free, g).reshape(5, param.n_free, task.dof)
+    q_start = task.robot.random_q(5, g)
+    goal = task.robot.ee_pose(param.dense(free, q_start).q[:, -1])
+    for preset in ("official", "paper"):
+        value, grad = analytic(task, param, task.env(), preset, "ee_pose", free, q_start, None, goal)
+        assert value.abs().max() < 1e-14 and grad.abs().max() < 1e-6
+
+
+def test_ee_forms_agree_for_small_motions_near_origin():
+    g = torch.Generator().manual_seed(4)
+    R = torch.linalg.matrix_exp(_hat(torch.randn(4, 3, generator=g, dtype=F64)))
+    p = torch.zeros(4, 3, dtype=F64)
+    for v_scale, w_scale, rtol in ((1e-3, 1e-3, 2e-3), (0.5, 0.0, 1e-12), (0.0, 0.5, 1e-12)):
+        v = v_scale * torch.randn(4, 3, generator=g, dtype=F64)
+        w = w_scale * torch.randn(4, 3, generator=g, dtype=F64)
+        M = torch.zeros(4, 4, 4, dtype=F64)
+        M[:, :3, :3], M[:, :3, 3] = _hat(w), v
+        goal = torch.linalg.matrix_exp(M) @ _pose(p, R)  # T_goal = exp(xi) T_ee, so log(T_goal T_ee^-1) = xi
+        official, _, _ = ee_pose_error("official", p, R, goal[:, :3, 3], goal[:, :3, :3])
+        paper, _, _ = ee_pose_error("paper", p, R, goal[:, :3, 3], goal[:, :3, :3])
+        torch.testing.assert_close(official, 0.5 * (v.pow(2).sum(-1) + w.pow(2).sum(-1)), rtol=1e-10, atol=0)
+        torch.testing.assert_close(paper, official, rtol=rtol, atol=0)
+
+
+def test_se3_log_and_gradient():
+    """The log inverts exp at all angles (0, tiny, pi); the gradient of 1/2|log|^2 is exact, and the authors'
+    -J^T xi (i.e. xi itself as the gradient) is only its first-order approximation."""
+    g = torch.Generator().manual_seed(5)
+    axis = torch.nn.functional.normalize(torch.randn(6, 3, generator=g, dtype=F64), dim=-1)
+    ang = torch.tensor([0.0, 1e-9, 1e-3, 1.0, 3.14159, torch.pi], dtype=F64)[:, None]
+    R = torch.linalg.matrix_exp(_hat(axis * ang))
+    phi, theta = so3_log(R)
+    torch.testing.assert_close(torch.linalg.matrix_exp(_hat(phi)), R, rtol=0, atol=1e-12)
+    torch.testing.assert_close(theta, ang[:, 0], rtol=0, atol=1e-12)
+    # gradient of f(eps) = 1/2 |log(E exp(eps))|^2 by autograd through the reference log
+    xi0 = torch.randn(8, 6, generator=g, dtype=F64)
+    M = torch.zeros(8, 4, 4, dtype=F64)
+    M[:, :3, :3], M[:, :3, 3] = _hat(xi0[:, 3:]), xi0[:, :3]
+    E = torch.linalg.matrix_exp(M)
+    xi, parts = se3_log(E[:, :3, :3], E[:, :3, 3])
+    torch.testing.assert_close(xi, ref_se3_log(E), rtol=1e-10, atol=1e-12)
+    eps = torch.zeros(8, 6, dtype=F64, requires_grad=True)
+    Me = torch.zeros(8, 4, 4, dtype=F64)
+    Me[:, :3, :3], Me[:, :3, 3] = _hat(eps[:, 3:]), eps[:, :3]
+    f = 0.5 * ref_se3_log(E @ torch.linalg.matrix_exp(Me)).pow(2).sum()
+    (auto,) = torch.autograd.grad(f, eps)
+    grad = se3_half_sq_log_grad(parts)
+    assert _rel(grad, auto) < 1e-9
+    assert _rel(xi, auto) > 1e-2  # -J^T xi is not the gradient for finite errors
