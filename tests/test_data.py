@@ -88,6 +88,25 @@ def test_same_seed_same_bytes_any_worker_count(reference, tmp_path, monkeypatch)
     assert load_definition(p3).identity != lock["identity"]
 
 
+def test_reproduced_generation_leaves_the_committed_lock_alone(reference, tmp_path, monkeypatch):
+    """A fresh clone regenerating a dataset with a committed lock must not dirty the working tree: same data, same
+    lock bytes (only the cache-side copy records this machine's timings)."""
+    path, lock, _, _ = reference
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    p2 = _define(tmp_path / "defs", "tiny")
+    rd = load_definition(p2)
+    committed = json.dumps(lock, indent=1) + "\n"
+    rd.lock_path.write_text(committed)
+    lock2 = generate(p2, workers=1, progress=False)
+    assert lock2["content_hash"] == lock["content_hash"]
+    assert rd.lock_path.read_text() == committed
+    assert json.loads((rd.data_dir / "lock.json").read_text())["content_hash"] == lock["content_hash"]
+    # a different dataset under the same name is a new version: its lock is written
+    p3 = _define(tmp_path / "defs", "tiny", seed=8)
+    generate(p3, workers=1, progress=False)
+    assert json.loads(rd.lock_path.read_text())["identity"] != lock["identity"]
+
+
 def test_truncated_chunk_detected_and_regenerated(reference, tmp_path, monkeypatch, capsys):
     _, lock, ref_bytes, _ = reference
     monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))

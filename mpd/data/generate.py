@@ -407,7 +407,11 @@ def _write_lock(rd: ResolvedDefinition, workers: int | None, wall: float | None)
     }
     text = (json.dumps(lock, indent=1) + "\n").encode()
     write_atomic(rd.data_dir / "lock.json", text)
-    rd.lock_path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(rd.lock_path, text)
+    # A generation that reproduces the committed lock's data leaves the committed file alone: only this machine's
+    # timings and provenance would change, and a fresh clone would otherwise show a dirty tree in every run's
+    # provenance. The cache-side lock.json keeps this generation's figures.
+    if not (same and prev.get("content_hash") == lock["content_hash"]):
+        rd.lock_path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(rd.lock_path, text)
     changed = [o["chunk"] for o in outs if o["chunk"] in prev_outs and prev_outs[o["chunk"]] != o["sha256"]]
     return lock, changed

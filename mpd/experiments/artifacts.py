@@ -20,7 +20,9 @@ _PATHS_PER_S = {
     "RobotPlanar4Link": 8.0,
     "RobotPanda": 2.0,
 }
-_STEPS_PER_S = {2: 40.0, 3: 30.0, 4: 3.0}  # by U-Net depth: (1,2,4) small nets vs (1,2,4,8) Panda-sized
+# training steps/s by U-Net depth, one thread per model on a 2-core CPU at the cpu profiles' batch sizes: measured
+# 8.5/s for the (1, 2, 4) nets at batch 128 (two models side by side), ~2/s for the (1, 2, 4, 8) nets at batch 512
+_STEPS_PER_S = {2: 10.0, 3: 8.0, 4: 2.0}
 
 
 @dataclass
@@ -161,7 +163,7 @@ def needs(spec, cells) -> list[Need]:
         content = _content_hash(rd) if not bad else None
         for kind, par in sorted(_model_kinds(cells, task_name)):
             train = training_settings(task, ts)
-            steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults) + (1 if task.robot.dof > 4 else 0), 5.0)
+            steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults), 2.0)
             if content is None:
                 out.append(
                     Need(
