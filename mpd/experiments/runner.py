@@ -165,7 +165,7 @@ class Runner:
             "run_id": self.run_dir.name,
             "spec_name": self.spec.name,
             "spec_hash": self.spec.hash,
-            "spec_path": str(self.spec.path),
+            "spec_path": _repo_relative(self.spec.path),
             "spec": self.spec.raw,
             "cells": [{"key": c.key, **c.p} for c in self.cells],
             "executor": self.executor,
@@ -344,3 +344,15 @@ def resolve_run(name_or_path: str) -> Path:
 
 
 __all__ = ["Plan", "Runner", "latest_run", "plan_seed", "read_results", "resolve_run", "run_id"]
+
+
+def _repo_relative(path) -> str:
+    """A spec inside the repository is recorded relative to its root, so manifests and reports do not depend on
+    where the clone lives."""
+    from mpd.paths import REPO_ROOT
+
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(Path(REPO_ROOT).resolve()))
+    except ValueError:
+        return str(p)
