@@ -46,7 +46,14 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
 @click.option("--device", default=None, help="cpu, cuda, cuda:1 ... (default: CUDA when present)")
 @click.option("--report/--no-report", default=False, help="write the report and the Rerun recording at the end")
 @click.option("--mlflow", is_flag=True, help="also log the run to the local MLflow store (needs the mlflow extra)")
-def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow):
+@click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    default=None,
+    help="torch threads of the planning process with --workers 1 (worker processes always use 1); set it on a busy "
+    "machine: more threads than free cores makes OpenMP spin and can be 10x slower",
+)
+def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, threads):
     """Run an experiment SPEC (a name under benchmarks/specs/ or a path)."""
     from mpd.experiments.runner import Runner
     from mpd.experiments.spec import load_spec
@@ -58,6 +65,10 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
     for k in only_d:
         if k not in AXES and not k.startswith(PLANNER_PREFIX):
             raise ConfigError("--only", k, f"unknown axis (allowed: {', '.join(AXES)}, planner.<setting>)")
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
     runner = Runner(s, only_d or None, executor, workers, address, run_dir, fresh, device, mlflow=mlflow)
     if not runner.cells:
         raise ConfigError(s.path, "--only", "no cell matches")
