@@ -110,7 +110,12 @@ class Runner:
         lines.append("artifacts:")
         for n in p.needs:
             lines.append(f"  {n.describe()}")
-        est = sum(n.estimate_s for n in p.needs if not n.exists)
+        # datasets are generated one after the other; missing models train side by side, up to --workers at once
+        todo = [n for n in p.needs if not n.exists]
+        n_models = sum(1 for n in todo if n.kind == "model")
+        est = sum(n.estimate_s for n in todo if n.kind != "model") + sum(
+            n.estimate_s for n in todo if n.kind == "model"
+        ) / max(1, min(self.workers, n_models))
         lines.append("")
         lines.append(
             f"units (cell x context): {p.units_total} in all, {p.units_todo} to compute; "
