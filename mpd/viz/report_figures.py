@@ -206,8 +206,8 @@ def swarm_figure(d: pd.DataFrame) -> Figure | None:
                         ax.tick_params(labelbottom=False)
                     if r == 0:
                         ax.set_title(title, fontsize=7.5)
-                    if c == 0:
-                        ax.set_ylabel(short_task(task), fontsize=7.5, fontweight="bold")
+                    if c == 0 and scene == scenes[0]:  # the scenes share rows: a label in the gap would overlap
+                        ax.set_ylabel(short_task(task).replace(" / ", "\n"), fontsize=7.5, fontweight="bold")
         method_legend(fig, methods)
         set_note(fig, chosen)
     return fig
