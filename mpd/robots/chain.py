@@ -66,6 +66,31 @@ class Kinematics:
     points_t: torch.Tensor | None = None  # (P, 3, B)
     frames_t: torch.Tensor | None = None  # (dof + 1, 4, 3, B): [R_f | p_f] transposed, see KinematicChain.forward
 
+    @classmethod
+    def from_batch_last(
+        cls,
+        q: torch.Tensor,
+        axes_t: torch.Tensor,
+        origins_t: torch.Tensor,
+        points_t: torch.Tensor | None,
+        ee_pos: torch.Tensor | None,
+        ee_rot: torch.Tensor | None,
+        frames_t: torch.Tensor,
+    ) -> Kinematics:
+        """The batch-first fields as views of the batch-last buffers."""
+        return cls(
+            q,
+            axes_t.permute(2, 0, 1),
+            origins_t.permute(2, 0, 1),
+            None if points_t is None else points_t.permute(2, 0, 1),
+            ee_pos,
+            ee_rot,
+            axes_t=axes_t,
+            origins_t=origins_t,
+            points_t=points_t,
+            frames_t=frames_t,
+        )
+
 
 class KinematicChain:
     """A serial chain with points attached to its links.
@@ -248,18 +273,7 @@ class KinematicChain:
                     for w, x, lo, hi in blocks:
                         torch.mm(w, x, out=pts_t[lo:hi].view(hi - lo, 3 * B))
         ee_pos, ee_rot = self._ee_pose(F, c) if ee else (None, None)
-        return Kinematics(
-            q,
-            axes.permute(2, 0, 1),
-            origins.permute(2, 0, 1),
-            None if pts_t is None else pts_t.permute(2, 0, 1),
-            ee_pos,
-            ee_rot,
-            axes_t=axes,
-            origins_t=origins,
-            points_t=pts_t,
-            frames_t=F,
-        )
+        return Kinematics.from_batch_last(q, axes, origins, pts_t, ee_pos, ee_rot, F)
 
     def _ee_pose(self, F: torch.Tensor, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """End-effector position (B, 3) and rotation (B, 3, 3) from the batch-last frames F."""
@@ -279,18 +293,7 @@ class KinematicChain:
         axes, origins = kin.axes_t.index_select(2, idx), kin.origins_t.index_select(2, idx)
         pts = None if kin.points_t is None else kin.points_t.index_select(2, idx)
         ee_pos, ee_rot = self._ee_pose(F, self._c(F.dtype, F.device))
-        return Kinematics(
-            kin.q.index_select(0, idx),
-            axes.permute(2, 0, 1),
-            origins.permute(2, 0, 1),
-            None if pts is None else pts.permute(2, 0, 1),
-            ee_pos,
-            ee_rot,
-            axes_t=axes,
-            origins_t=origins,
-            points_t=pts,
-            frames_t=F,
-        )
+        return Kinematics.from_batch_last(kin.q.index_select(0, idx), axes, origins, pts, ee_pos, ee_rot, F)
 
     # ------------------------------------------------------------------ Jacobian products
     def points_vjp(self, kin: Kinematics, g: torch.Tensor) -> torch.Tensor:
