@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mpd.experiments.tracking import CELL_COLUMNS
 from mpd.viz.scene import EXTRA, GOAL, INVALID, OBSTACLE, ROBOT, START, VALID
 
 TIME = "time"
@@ -275,19 +276,8 @@ def _blueprint(task, steps: bool):
     )
 
 
-_INFO_AXES = (
-    "method",
-    "parametrization",
-    "preset",
-    "sampler",
-    "extra_objects",
-    "rotation_deg",
-    "n_samples",
-    "seed",
-    "overrides",
-    "context_index",
-    "cell_key",
-)
+# the cell's parameters (the task is the recording's own title), then where the row sits in the run
+_INFO_AXES = tuple(c for c in CELL_COLUMNS if c != "task") + ("context_index", "cell_key")
 _INFO_METRICS = ("success", "fraction_valid", "vendi", "ee_pos_error", "ee_ori_error_deg", "best_path_length")
 
 
