@@ -241,10 +241,11 @@ def ddim_timesteps(
         seq = steps[::-1]
         return list(zip(seq, seq[1:] + [-1]))
     if variant == "official":
-        unique = sorted(set(grid.tolist()))
+        used = set(grid.tolist())
+        unique = sorted(used)
         n_extra = n_steps - len(unique)
         if n_extra:
-            unused = torch.tensor([t for t in range(n_train) if t not in set(unique)])
+            unused = torch.tensor([t for t in range(n_train) if t not in used])
             dev = generator.device if generator is not None else "cpu"
             pick = torch.randperm(len(unused), generator=generator, device=dev)[:n_extra].cpu()
             unique = sorted(unique + unused[pick].tolist())
