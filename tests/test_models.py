@@ -490,3 +490,81 @@ def test_learning_rate_schedules():
     assert learning_rate(cos, 99) == pytest.approx(1e-4)
     lrs = [learning_rate(cos, s) for s in range(10, 100)]
     assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+
+
+# --- fidelity to the authors' networks ----------------------------------------------------------------------------
+@pytest.mark.parametrize("n_layers", [0, 1, 2])
+def test_context_mlp_has_n_layers_plus_one_hidden_layers(n_layers):
+    """The authors' MLP(n_layers): Linear(in, h), ReLU, n_layers x [Linear(h, h), ReLU], Linear(h, out), recomputed
+    here with plain matrix products on the encoder's own weights."""
+    from mpd.models.context import ContextEncoder
+
+    enc = ContextEncoder("goal_joint_position", 3, 8, n_layers).double()
+    linears = [m for m in enc.joints if isinstance(m, torch.nn.Linear)]
+    assert len(linears) == n_layers + 2  # n_layers + 1 hidden layers and the output layer
+    assert len([m for m in enc.combine if isinstance(m, torch.nn.Linear)]) == 3  # combining MLP: n_layers = 1
+    x = {"q_start": torch.randn(5, 3, dtype=torch.float64), "q_goal": torch.randn(5, 3, dtype=torch.float64)}
+
+    def by_hand(layers, h):
+        for k, lin in enumerate(layers):
+            h = h @ lin.weight.T + lin.bias
+            if k < len(layers) - 1:
+                h = h.clamp_min(0)
+        return h
+
+    h = by_hand(linears, torch.cat([x["q_start"], x["q_goal"]], -1))
+    ref = by_hand([m for m in enc.combine if isinstance(m, torch.nn.Linear)], h)
+    assert torch.allclose(enc(x), ref, atol=1e-12)
+
+
+def test_cvae_logvar_soft_clip_loss_and_reparametrization_by_hand():
+    """The authors' CVAE: log-variance soft-clipped by lo + softplus(hi - softplus(hi - v) - lo) into (-7, 2); loss =
+    mean over the batch of ||x_rec - x||_F + 0.1 KL; z = mu + exp(logvar / 2) eps (not the authors' 0.5 exp(logvar))."""
+    from mpd.models.cvae import soft_clip
+
+    v = torch.linspace(-30, 30, 601, dtype=torch.float64)
+    sp = lambda u: np.log1p(np.exp(-np.abs(u))) + np.maximum(u, 0)  # noqa: E731
+    vn = v.numpy()
+    assert np.allclose(soft_clip(v).numpy(), -7 + sp(2 - sp(2 - vn) + 7), atol=1e-12)
+    assert soft_clip(v).min() >= -7 and soft_clip(v).max() < 2 + 2e-4  # softplus(9) = 9.0001
+    assert abs(float(soft_clip(torch.tensor(-2.5))) + 2.5) < 0.02  # near identity well inside the range
+
+    torch.manual_seed(0)
+    net = CVAE(3, 9, "goal_joint_position", TINY).double()
+    x = torch.randn(4, 9, 3, dtype=torch.float64)
+    ctx = {"q_start": torch.randn(4, 3, dtype=torch.float64), "q_goal": torch.randn(4, 3, dtype=torch.float64)}
+    with torch.no_grad():
+        terms = net.loss_terms(x, ctx, torch.Generator().manual_seed(5))
+        emb = net.context_encoder(ctx)
+        mu, logvar = net.encode(x, emb)
+    eps = torch.randn(4, net.latent_dim, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    z = mu + torch.exp(0.5 * logvar) * eps
+    with torch.no_grad():
+        rec = net.decode(z, emb)
+    frob = np.sqrt(((rec - x).detach().numpy() ** 2).sum(axis=(1, 2)))
+    kl = 0.5 * (mu**2 + logvar.exp() - 1 - logvar).sum(-1)
+    assert float(terms["reconstruction"]) == pytest.approx(frob.mean(), rel=1e-10)
+    assert float(terms["loss"]) == pytest.approx(frob.mean() + 0.1 * float(kl.mean()), rel=1e-10)
+    # the latent-to-bottleneck map is the authors' MLP(n_layers = 1): two hidden ReLU layers of the mid width
+    lin = [m for m in net.from_latent if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in lin] == [
+        (32, net.bottleneck[0]),
+        (net.bottleneck[0], net.bottleneck[0]),
+        (net.bottleneck[0], net.bottleneck[0] * net.bottleneck[1]),
+    ]
+
+
+def test_unnormalize_clips_to_the_data_range_and_the_gradient_is_that_of_the_clip():
+    """As the authors' limits normalizer: x_norm is clipped to [-1, 1] before unnormalizing, and the chain rule
+    through it (checked against autograd of clamp) zeroes the gradient of entries outside the range."""
+    norm = Normalizer(np.array([-2.0, 0.0]), np.array([2.0, 10.0]))
+    x = torch.tensor([[[-1.5, 0.2], [0.3, 1.7], [0.99, -0.999]]], dtype=torch.float64, requires_grad=True)
+    raw = norm.unnormalize(x)
+    assert torch.allclose(raw, torch.tensor([[[-2.0, 6.0], [0.6, 10.0], [1.98, 0.005]]], dtype=torch.float64))
+    assert torch.allclose(norm.unnormalize(x, clip=False)[0, 0], torch.tensor([-3.0, 6.0], dtype=torch.float64))
+    w = torch.tensor([[[1.0, -2.0], [3.0, 0.5], [-1.0, 4.0]]], dtype=torch.float64)
+    cost = (w * raw**2).sum()
+    (g_auto,) = torch.autograd.grad(cost, x)
+    g_raw = 2 * w * raw.detach()
+    assert torch.allclose(norm.grad_to_normalized(g_raw, x.detach()), g_auto)
+    assert torch.allclose(norm.grad_to_normalized(g_raw), g_raw * torch.tensor([2.0, 5.0], dtype=torch.float64))

@@ -2,8 +2,10 @@
 
 As in the authors' networks: one MLP on the joint-space part (q_start, plus q_goal for joint-goal tasks), one
 on the end-effector goal pose (position 3 + flattened rotation 9, EE-goal tasks only), and a combining MLP on
-the concatenation of their outputs. Every MLP has ``context_layers`` hidden ReLU layers of width
-``context_dim`` and a linear output of size ``context_dim``; the combining MLP has one hidden layer.
+the concatenation of their outputs. Each MLP is the authors' ``MLP(n_layers)``: an input layer and ``n_layers``
+more hidden layers, i.e. ``n_layers + 1`` hidden ReLU layers of width ``context_dim``, then a linear output of size
+``context_dim``. The per-part MLPs take ``context_layers`` (1 for the 2-D tasks and Planar2Link, 2 for the others,
+as in the authors' training launcher); the combining MLP takes 1 (two hidden layers), as the authors' default.
 """
 
 from __future__ import annotations
@@ -49,15 +51,16 @@ def context_shapes(kind: str, dof: int) -> dict[str, tuple[int, ...]]:
     return {"q_start": (dof,), "ee_pos": (3,), "ee_rot": (3, 3)}
 
 
-def mlp(in_dim: int, out_dim: int, n_layers: int) -> nn.Sequential:
-    if n_layers < 1:
-        raise ValueError(f"context_layers must be >= 1, got {n_layers}")
-    layers: list[nn.Module] = []
-    width = in_dim
+def mlp(in_dim: int, out_dim: int, n_layers: int, hidden_dim: int | None = None) -> nn.Sequential:
+    """``Linear(in, h), ReLU, n_layers x [Linear(h, h), ReLU], Linear(h, out)``: ``n_layers + 1`` hidden layers of
+    width ``hidden_dim`` (default ``out_dim``), the layer count of the authors' ``MLP(n_layers=...)``."""
+    if n_layers < 0:
+        raise ValueError(f"context_layers must be >= 0, got {n_layers}")
+    h = out_dim if hidden_dim is None else hidden_dim
+    layers: list[nn.Module] = [nn.Linear(in_dim, h), nn.ReLU()]
     for _ in range(n_layers):
-        layers += [nn.Linear(width, out_dim), nn.ReLU()]
-        width = out_dim
-    layers.append(nn.Linear(width, out_dim))
+        layers += [nn.Linear(h, h), nn.ReLU()]
+    layers.append(nn.Linear(h, out_dim))
     return nn.Sequential(*layers)
 
 

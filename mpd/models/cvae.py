@@ -1,11 +1,18 @@
-"""Conditional VAE baseline (paper, "Baselines") on the temporal U-Net backbone.
+"""Conditional VAE baseline (paper, "Baselines") on the temporal U-Net backbone, as the authors build and train it.
 
-Encoder q(z | x, c): the U-Net down path and mid blocks on x, FiLM-conditioned on the context embedding; the
-flattened bottleneck is projected to the mean and log-variance of a 32-D Gaussian. Decoder p(x | z, c): z is
-projected back to the bottleneck shape and run through the U-Net up path *without* skip connections (there is
-no x at sampling time), FiLM-conditioned on the context. Loss = sum of squared reconstruction errors + beta
-KL (beta = 0.1), both per sample and averaged over the batch, in normalized space. The bottleneck length
-depends on H, so a CVAE is built for one horizon.
+Encoder q(z | x, c): the U-Net down path and one mid block on x, FiLM-conditioned on the context embedding; the
+flattened bottleneck goes through one linear layer to the mean and log-variance of a 32-D Gaussian. The
+log-variance is soft-clipped to [-7, 2] with the differentiable two-softplus clamp the authors use
+(``lo + softplus(hi - softplus(hi - v) - lo)``). Decoder p(x | z, c): z is mapped to the bottleneck by the authors'
+``MLP(latent -> bottleneck, hidden = mid channels, n_layers = 1)`` (two hidden ReLU layers), then one mid block and
+the U-Net up path *without* skip connections (there is no x at sampling time), FiLM-conditioned on the context.
+
+Loss, per sample and averaged over the batch, in normalized space: the reconstruction error as the authors define
+it, the (unsquared) Frobenius norm ``||x_rec - x||`` over control points and joints, plus beta KL (beta = 0.1, the
+authors' training default). The reparametrization uses ``std = exp(logvar / 2)``: the authors' code draws with
+``0.5 exp(logvar)``, which disagrees with the Gaussian its KL term assumes (a slip, not a modelling choice), so it is
+not copied (README, "Paper vs the authors' configs"). The bottleneck length depends on H, so a CVAE is built for one
+horizon.
 """
 
 from __future__ import annotations
@@ -14,8 +21,9 @@ from collections.abc import Mapping
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
-from mpd.models.context import ContextEncoder
+from mpd.models.context import ContextEncoder, mlp
 from mpd.models.diffusion import randn
 from mpd.models.unet import (
     Conv1dBlock,
@@ -30,6 +38,13 @@ from mpd.tasks.spec import ModelSpec
 
 LATENT_DIM = 32
 BETA = 0.1
+LOGVAR_MIN, LOGVAR_MAX = -7.0, 2.0
+
+
+def soft_clip(v: torch.Tensor, lo: float = LOGVAR_MIN, hi: float = LOGVAR_MAX) -> torch.Tensor:
+    """Differentiable clamp of v to about [lo, hi] (the top is hi + softplus(lo - hi) above): ``lo + softplus(hi -
+    softplus(hi - v) - lo)``."""
+    return lo + F.softplus(hi - F.softplus(hi - v) - lo)
 
 
 def kl_standard_normal(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
@@ -63,16 +78,16 @@ class CVAE(nn.Module):
         # encoder
         self.downs = down_path(levels, cond_dim)
         self.mid1 = ResidualTemporalBlock(mid, mid, cond_dim)
-        self.mid2 = ResidualTemporalBlock(mid, mid, cond_dim)
         self.to_latent = nn.Linear(flat, 2 * latent_dim)
         # decoder
-        self.from_latent = nn.Linear(latent_dim, flat)
+        self.from_latent = mlp(latent_dim, flat, n_layers=1, hidden_dim=mid)
+        self.mid2 = ResidualTemporalBlock(mid, mid, cond_dim)
         self.ups = up_path(levels, cond_dim, skips=False)
         top = levels[0][1]
         self.final = nn.Sequential(Conv1dBlock(top, top), nn.Conv1d(top, dof, 1))
 
     def encode(self, x: torch.Tensor, context_emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mu, logvar), each ``(B, latent_dim)``."""
+        """(mu, logvar), each ``(B, latent_dim)``; logvar soft-clipped to (LOGVAR_MIN, LOGVAR_MAX)."""
         if tuple(x.shape[1:]) != (self.horizon, self.dof):
             raise ValueError(
                 f"CVAE built for x of shape (B, {self.horizon}, {self.dof}), got {tuple(x.shape)}"
@@ -80,12 +95,12 @@ class CVAE(nn.Module):
         h = pad_horizon(x.transpose(1, 2), self.n_levels)
         for res1, res2, down in self.downs:
             h = down(res2(res1(h, context_emb), context_emb))
-        h = self.mid2(self.mid1(h, context_emb), context_emb)
+        h = self.mid1(h, context_emb)
         mu, logvar = self.to_latent(h.flatten(1)).chunk(2, dim=-1)
-        return mu, logvar
+        return mu, soft_clip(logvar)
 
     def decode(self, z: torch.Tensor, context_emb: torch.Tensor) -> torch.Tensor:
-        h = self.from_latent(z).reshape(z.shape[0], *self.bottleneck)
+        h = self.mid2(self.from_latent(z).reshape(z.shape[0], *self.bottleneck), context_emb)
         for res1, res2, up in self.ups:
             h = up(res2(res1(h, context_emb), context_emb))
         return self.final(h)[..., : self.horizon].transpose(1, 2)
@@ -107,7 +122,7 @@ class CVAE(nn.Module):
         self, x0: torch.Tensor, context: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
     ) -> dict[str, torch.Tensor]:
         recon, mu, logvar = self(x0, context, generator)
-        rec = (recon - x0).square().flatten(1).sum(dim=-1).mean()
+        rec = torch.linalg.vector_norm((recon - x0).flatten(1), dim=-1).mean()
         kl = kl_standard_normal(mu, logvar).mean()
         return {"loss": rec + self.beta * kl, "reconstruction": rec, "kl": kl}
 

@@ -52,6 +52,9 @@ from mpd.tasks.spec import ModelSpec, TrainingSpec
 
 VAL_MAX_SAMPLES = 4096  # validation loss on (at most) the first this many val samples, fixed t and noise
 LOG_EVERY = 50  # steps between progress-bar updates (each one synchronizes the device)
+# Bumped whenever the networks or their losses change, so that a checkpoint of an older architecture is never
+# reused under a new one (2: context MLPs with n_layers + 1 hidden layers, the authors' CVAE layout and loss).
+NETWORK_VERSION = 2
 
 
 def model_identity(
@@ -63,7 +66,16 @@ def model_identity(
     training_spec: TrainingSpec,
     seed: int,
 ) -> str:
-    return stable_hash(dataset_hash, kind, parametrization, parametrization_settings, model_spec, training_spec, seed)
+    return stable_hash(
+        dataset_hash,
+        kind,
+        parametrization,
+        parametrization_settings,
+        model_spec,
+        training_spec,
+        seed,
+        {"network_version": NETWORK_VERSION},
+    )
 
 
 def models_root(cache: str | Path | None = None) -> Path:
