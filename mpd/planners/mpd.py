@@ -4,8 +4,11 @@ Guidance acts only on the last denoising steps (``PlannerSettings.guided_steps``
 space of free control points. Two forms (``PlannerSettings.guided_update``):
 
 * ``official`` (the authors' code): at a guided DDIM step t -> t', eps_theta(x_t) is evaluated once; M times,
-  eps~ = lambda eps_theta + gamma clip(grad C(x_k)) and x_{k+1} = DDIM(x_k, eps~), clipped to x_t +- delta
-  (the first gradient at x_t itself).
+  eps~ = lambda eps_theta + gamma clip(grad C(x_k)) and x_{k+1} = x_t + clip(DDIM_mean(x_k, eps~) - x_t, -delta,
+  delta), where DDIM_mean is the DDIM update *without* its noise term (the first gradient at x_t itself). Then the
+  step's noise sigma z is added once, after the M iterations and outside the clip (none into level 0 or with
+  eta = 0): the delta budget is spent on the cost gradient only, and a guided step carries exactly the noise of an
+  unguided one.
 * ``paper``: the DDIM mean mu of (lambda eps_theta) is moved by M steps of gradient descent on C, each step
   clipped to mu +- delta; then the step's noise is added (none with eta = 0). The covariance factor of the
   Bayes-rule derivation is dropped, as the paper explains.
@@ -62,10 +65,9 @@ class MPD(Planner):
                     x_t, xk = x, x
                     for _ in range(s.n_inner_steps):
                         eps_k = s.prior_weight * eps + s.guide_lr * clip_grad(grad_fn(xk), s.grad_clip)
-                        xk = project(
-                            ddim_step(xk, eps_k, t, tn, s.eta, noise_if(sigma, tn)), x_t, s.max_perturb
-                        )
-                    x = xk
+                        xk = project(ddim_step(xk, eps_k, t, tn, s.eta, None), x_t, s.max_perturb)
+                    z = noise_if(sigma, tn)
+                    x = xk if z is None else xk + sigma * z
                 else:
                     mean = ddim_step(x, s.prior_weight * eps, t, tn, s.eta, None)
                     x = optimize(mean, grad_fn, s.n_inner_steps, s.guide_lr, s.max_perturb, s.grad_clip)
