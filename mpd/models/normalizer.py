@@ -11,6 +11,8 @@ import torch
 # A dimension whose training range is (almost) empty would divide by ~0; it is widened to [v - 1, v + 1]
 # instead, so its constant value maps to 0 and its scale to raw units is 1.
 _MIN_RANGE = 1e-8
+# entries this far beyond +-1 count as inside the range for the gradient mask (the authors' tolerance)
+CLIP_TOL = 1e-4
 
 
 class Normalizer:
@@ -19,6 +21,11 @@ class Normalizer:
     ``normalize(x) = 2 (x - lo) / (hi - lo) - 1`` and ``unnormalize`` its inverse. Since ``x_raw = centre +
     scale * x_norm`` with ``scale = (hi - lo) / 2``, a cost gradient maps as ``grad_norm = grad_raw * scale``
     (:meth:`grad_to_normalized`), and a step taken in normalized space is ``scale`` times larger in raw units.
+
+    As the authors' limits normalizer, ``unnormalize`` clips to the data range first (x_norm to [-1, 1]): every
+    sample a planner returns, and every point a cost is evaluated at, lies within the range of the training data.
+    ``grad_to_normalized(g, x)`` then masks the entries of x outside [-1 - CLIP_TOL, 1 + CLIP_TOL], whose raw value
+    does not move with them (the derivative of the clip), as the authors do.
     """
 
     def __init__(self, lo: Any, hi: Any):
@@ -85,17 +92,23 @@ class Normalizer:
         centre, scale = self._consts(x)
         return (x - centre) / scale
 
-    def unnormalize(self, x: torch.Tensor) -> torch.Tensor:
+    def unnormalize(self, x: torch.Tensor, clip: bool = True) -> torch.Tensor:
+        """Raw values of x; with ``clip`` (the default) x is first clipped to [-1, 1], i.e. to the data range."""
         centre, scale = self._consts(x)
-        return x * scale + centre
+        return (x.clamp(-1.0, 1.0) if clip else x) * scale + centre
 
     def scale(self, like: torch.Tensor) -> torch.Tensor:
         """d x_raw / d x_norm per dimension, ``(dim,)``, with the dtype and device of ``like``."""
         return self._consts(like)[1]
 
-    def grad_to_normalized(self, grad_raw: torch.Tensor) -> torch.Tensor:
-        """Chain rule: gradient of a cost w.r.t. raw values -> w.r.t. normalized values."""
-        return grad_raw * self._consts(grad_raw)[1]
+    def grad_to_normalized(self, grad_raw: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
+        """Chain rule: gradient of a cost w.r.t. raw values -> w.r.t. normalized values. With ``x`` (the normalized
+        point the raw values came from, through the clipping :meth:`unnormalize`), entries of x beyond the range
+        get zero gradient."""
+        g = grad_raw * self._consts(grad_raw)[1]
+        if x is None:
+            return g
+        return g * (x.abs() <= 1.0 + CLIP_TOL).to(g.dtype)
 
     def grad_to_raw(self, grad_norm: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`grad_to_normalized`."""

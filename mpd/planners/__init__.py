@@ -39,8 +39,13 @@ def make_planner(
     parametrization: str = "bspline",
     model=None,
     device=None,
+    data_range: tuple | None = None,
 ) -> Planner:
-    """Build a planner for a task scene (training scene, extra objects, rotation) with a settings preset."""
+    """Build a planner for a task scene (training scene, extra objects, rotation) with a settings preset.
+
+    ``data_range`` = (lo, hi) per joint of the training data's free control points: the normalized space of a
+    planner without a model (GPprior+Cost, RRTConnect+Cost), as the authors' baselines use the dataset's; by default
+    the joint limits. A planner with a model always uses the model's own range."""
     from mpd.device import default_device
     from mpd.trajectory import make_parametrization
 
@@ -62,7 +67,22 @@ def make_planner(
             )
     device = device or (model.device if model is not None else default_device())
     env = task.env(extra_objects, rotation_deg)
-    return cls(task, env, settings, make_parametrization(task, parametrization), model=model, device=device)
+    normalizer = None
+    if data_range is not None and model is None:
+        from mpd.models.normalizer import Normalizer
+
+        normalizer = Normalizer(*data_range)
+        if normalizer.dim != task.dof:
+            raise ValueError(f"data_range has {normalizer.dim} dimensions, task {task.name} has {task.dof} joints")
+    return cls(
+        task,
+        env,
+        settings,
+        make_parametrization(task, parametrization),
+        model=model,
+        device=device,
+        normalizer=normalizer,
+    )
 
 
 __all__ = [

@@ -16,6 +16,7 @@ from typing import ClassVar
 import torch
 
 from mpd.device import synchronize
+from mpd.models.normalizer import Normalizer
 from mpd.planners.settings import PlannerSettings
 from mpd.trajectory import Dense, LinearTrajectory
 
@@ -32,17 +33,20 @@ def register(cls: type[Planner]) -> type[Planner]:
 
 @dataclass
 class Context:
-    """One planning problem. ``q_goal`` is None for end-effector-goal tasks (planners must not peek at the dataset's
-    goal configuration there); ``ee_pos``/``ee_rot`` are None for joint-goal tasks."""
+    """One planning problem. ``q_goal`` is None for end-effector-goal tasks (models must not peek at the dataset's
+    goal configuration there); ``ee_pos``/``ee_rot`` are None for joint-goal tasks. ``q_goal_ref`` is a goal
+    configuration that reaches the end-effector goal (the dataset's, i.e. inverse kinematics done before planning):
+    the baselines that need a goal configuration use it, as the authors' do (GPprior+Cost); None: they solve IK."""
 
     q_start: torch.Tensor
     q_goal: torch.Tensor | None = None
     ee_pos: torch.Tensor | None = None
     ee_rot: torch.Tensor | None = None
+    q_goal_ref: torch.Tensor | None = None
 
     def to(self, device, dtype=torch.float32) -> Context:
         f = lambda x: None if x is None else x.to(device=device, dtype=dtype)  # noqa: E731
-        return Context(f(self.q_start), f(self.q_goal), f(self.ee_pos), f(self.ee_rot))
+        return Context(f(self.q_start), f(self.q_goal), f(self.ee_pos), f(self.ee_rot), f(self.q_goal_ref))
 
     @property
     def ee_goal(self) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -89,23 +93,6 @@ class Timer:
         self.times[key] = self.times.get(key, 0.0) + seconds
 
 
-class Normalizer:
-    """Affine map of raw free rows to the unit-normalized space where guidance steps, clipping and delta act."""
-
-    def __init__(self, lo: torch.Tensor, hi: torch.Tensor):
-        self.mid = (hi + lo) / 2
-        self.half = ((hi - lo) / 2).clamp_min(1e-8)
-
-    def normalize(self, x: torch.Tensor) -> torch.Tensor:
-        return (x - self.mid.to(x)) / self.half.to(x)
-
-    def unnormalize(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.half.to(x) + self.mid.to(x)
-
-    def grad_to_normalized(self, g: torch.Tensor) -> torch.Tensor:
-        return g * self.half.to(g)
-
-
 class Planner:
     """Base class. Subclasses set ``name`` (registry key), ``label`` (for figures) and ``model_kind``."""
 
@@ -133,6 +120,7 @@ class Planner:
         parametrization: LinearTrajectory,
         model=None,
         device: torch.device | str = "cpu",
+        normalizer: Normalizer | None = None,
     ):
         if self.model_kind is not None and model is None:
             raise ValueError(f"planner {self.name!r} needs a trained {self.model_kind} model")
@@ -155,11 +143,16 @@ class Planner:
                 sdf_mode=settings.sdf_mode,
                 profile=True,
             )
+        # the unit-normalized space of free control points where guidance and every "+Cost" optimization act, and
+        # whose range [-1, 1] every output is clipped to: a model's data range; for a planner without a model, the
+        # data range it is given (the runner passes the dataset's, as the authors' baselines use it), else the
+        # joint limits
         if model is not None:
             self.normalizer = model.x_normalizer
+        elif normalizer is not None:
+            self.normalizer = normalizer
         else:
-            lo, hi = task.robot.q_min.float(), task.robot.q_max.float()
-            self.normalizer = Normalizer(lo.to(self.device), hi.to(self.device))
+            self.normalizer = Normalizer(task.robot.q_min.double().numpy(), task.robot.q_max.double().numpy())
 
     # -- helpers shared by the planners ---------------------------------------------------------------------
     def cost_grad_fn(self, ctx: Context, timer: Timer) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -177,7 +170,7 @@ class Planner:
                     None if q_goal is None else q_goal.expand(B, -1),
                     ee_goal=ee_b,
                 )
-                g = self.normalizer.grad_to_normalized(res.grad)
+                g = self.normalizer.grad_to_normalized(res.grad, x)
             for k, v in (res.timings or {}).items():
                 timer.add(f"cost/{k}", v)
             timer.times["cost_gradient_calls"] = timer.times.get("cost_gradient_calls", 0) + 1
