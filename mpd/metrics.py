@@ -3,9 +3,15 @@
 All are computed on the dense trajectories, by the ground-truth checker (analytic SDF, margin 0), never by the
 planner's own cost: success (at least one valid trajectory), fraction valid (collision free and within position,
 velocity and acceleration limits), Vendi diversity of the valid ones (kernel exp(-||a - b||^2) on the dense
-joint trajectories, as in the paper), end-effector position (m) and orientation (deg) errors, smoothness (sum over
-time of the acceleration norm), path length (joint space); mean over the valid trajectories, and for the best
-trajectory chosen by a rule.
+joint trajectories, as in the paper; missing (NaN) with fewer than two valid trajectories, as the authors record
+it), end-effector position (m) and orientation (deg) errors, smoothness (sum over time of the acceleration norm),
+path length (joint space); mean over the valid trajectories, and for the best trajectory chosen by a rule.
+
+End-effector errors are the authors' (the ones behind the paper's 2.0 / 5.2 / 7.4 cm): with the twist
+xi = [rho; phi] = log(T_goal T_ee^-1) (SE(3) log), ``ee_pos_error`` = ||rho|| and ``ee_ori_error_deg`` = ||phi||
+in degrees (the geodesic angle). rho is not the Euclidean offset: it carries an orientation x reach term, so
+``ee_pos_error_euclidean`` = ||p_ee - p_goal|| is reported beside it. The best trajectory of an end-effector-goal
+task is the valid one of lowest ``ee_pos_error`` (the authors' rule).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import math
 import torch
 
 from mpd.collision import CollisionChecker, Validity
+from mpd.costs.se3 import se3_log
 from mpd.trajectory import Dense
 
 METRICS = (
@@ -23,11 +30,13 @@ METRICS = (
     "n_valid",
     "vendi",
     "ee_pos_error",
+    "ee_pos_error_euclidean",
     "ee_ori_error_deg",
     "smoothness",
     "path_length",
     "best_path_length",
     "best_ee_pos_error",
+    "best_ee_pos_error_euclidean",
     "best_ee_ori_error_deg",
     "best_smoothness",
     "collision_fraction",
@@ -67,6 +76,18 @@ def rotation_angle_deg(r1: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.arccos(c.clamp(-1.0, 1.0)))
 
 
+def ee_pose_errors(
+    p_ee: torch.Tensor, r_ee: torch.Tensor, p_goal: torch.Tensor, r_goal: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(log position error (m), orientation error (deg), Euclidean position error (m)) of end-effector poses
+    (..., 3), (..., 3, 3) against goal poses (broadcast). The first two are the norms of the translation and rotation
+    parts of the twist log(T_goal T_ee^-1), the authors' definition."""
+    r_rel = r_goal @ r_ee.transpose(-1, -2)
+    t_rel = p_goal - (r_rel @ p_ee[..., None])[..., 0]
+    xi, _ = se3_log(r_rel, t_rel)
+    return xi[..., :3].norm(dim=-1), torch.rad2deg(xi[..., 3:].norm(dim=-1)), (p_ee - p_goal).norm(dim=-1)
+
+
 def _mean(x: torch.Tensor) -> float:
     return float(x.double().mean()) if x.numel() else float("nan")
 
@@ -92,18 +113,16 @@ def evaluate(
     lengths = path_length(q)
     smooth = smoothness(ddq)
     robot = checker.robot
-    if ee_goal is not None:
-        p_end, r_end = robot.ee_pose(q[:, -1])
-        pos_err = (p_end - ee_goal[0].to(q)).norm(dim=-1)
-        ori_err = rotation_angle_deg(r_end, ee_goal[1].to(q))
-    elif q_goal is not None:
+    if ee_goal is not None or q_goal is not None:
         # a joint goal: the end-effector error is that of the final configuration vs FK of the goal (0 for B-splines)
         p_end, r_end = robot.ee_pose(q[:, -1])
-        p_goal, r_goal = robot.ee_pose(q_goal.to(q)[None])
-        pos_err = (p_end - p_goal).norm(dim=-1)
-        ori_err = rotation_angle_deg(r_end, r_goal.expand_as(r_end))
+        if ee_goal is not None:
+            p_goal, r_goal = ee_goal[0].to(q), ee_goal[1].to(q)
+        else:
+            p_goal, r_goal = robot.ee_pose(q_goal.to(q)[None])
+        pos_err, ori_err, pos_err_euc = ee_pose_errors(p_end, r_end, p_goal, r_goal)
     else:
-        pos_err = ori_err = torch.zeros_like(lengths)
+        pos_err = ori_err = pos_err_euc = torch.zeros_like(lengths)
     rule = best if best != "auto" else ("ee_error" if ee_goal is not None else "shortest")
     if rule not in BEST_RULES:
         raise ValueError(f"unknown best-trajectory rule {best!r} (auto, {', '.join(BEST_RULES)})")
@@ -116,13 +135,15 @@ def evaluate(
         "success": float(len(idx) > 0),
         "fraction_valid": _mean(valid.float()),
         "n_valid": float(len(idx)),
-        "vendi": vendi_score(q[idx]) if len(idx) else nan,
+        "vendi": vendi_score(q[idx]) if len(idx) > 1 else nan,
         "ee_pos_error": _mean(pos_err[idx]),
+        "ee_pos_error_euclidean": _mean(pos_err_euc[idx]),
         "ee_ori_error_deg": _mean(ori_err[idx]),
         "smoothness": _mean(smooth[idx]),
         "path_length": _mean(lengths[idx]),
         "best_path_length": float(lengths[b]) if b is not None else nan,
         "best_ee_pos_error": float(pos_err[b]) if b is not None else nan,
+        "best_ee_pos_error_euclidean": float(pos_err_euc[b]) if b is not None else nan,
         "best_ee_ori_error_deg": float(ori_err[b]) if b is not None else nan,
         "best_smoothness": float(smooth[b]) if b is not None else nan,
         "collision_fraction": _mean((~val.env_free).float()),

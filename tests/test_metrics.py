@@ -83,3 +83,84 @@ def test_evaluate_velocity_limits_fail_fast_trajectory():
     d = Dense(q, dq * 10.0, torch.zeros_like(q), 10.0)
     m, val, _ = evaluate(chk, d, q_goal=q[0, -1])
     assert not val.vel_ok.item() and m["limit_violation_fraction"] == 1.0
+
+
+def _random_rotation(rng) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(random_state=rng).as_matrix()
+
+
+def test_ee_pose_errors_are_the_authors_se3_log_checked_against_scipy_logm():
+    """Translation and rotation parts of log(T_goal T_ee^-1) against the 4x4 matrix logarithm of scipy (an
+    independent computation): [[phi^, rho], [0, 0]] = logm(T_goal T_ee^-1)."""
+    from scipy.linalg import logm
+
+    from mpd.metrics import ee_pose_errors
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        Rg, Re = _random_rotation(rng), _random_rotation(rng)
+        pg, pe = rng.normal(size=3), rng.normal(size=3)
+        Tg, Te = np.eye(4), np.eye(4)
+        Tg[:3, :3], Tg[:3, 3], Te[:3, :3], Te[:3, 3] = Rg, pg, Re, pe
+        L = np.real(logm(Tg @ np.linalg.inv(Te)))
+        rho, phi = L[:3, 3], np.array([L[2, 1], L[0, 2], L[1, 0]])
+        t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+        pos, ori, euc = ee_pose_errors(t(pe), t(Re), t(pg), t(Rg))
+        assert pos.item() == pytest.approx(np.linalg.norm(rho), rel=1e-7)
+        assert ori.item() == pytest.approx(np.rad2deg(np.linalg.norm(phi)), rel=1e-7)
+        assert euc.item() == pytest.approx(np.linalg.norm(pe - pg), rel=1e-12)
+    # a pure translation: the log error is the Euclidean one; a rotation about the goal frame's origin adds a reach
+    # term to the translation part even with the EE exactly at the goal position
+    I3 = torch.eye(3, dtype=torch.float64)
+    p0, p1 = torch.tensor([0.5, 0.0, 0.3], dtype=torch.float64), torch.tensor([0.5, 0.1, 0.3], dtype=torch.float64)
+    pos, ori, euc = ee_pose_errors(p1, I3, p0, I3)
+    assert pos.item() == pytest.approx(0.1) and euc.item() == pytest.approx(0.1) and ori.item() == 0.0
+    c, s = np.cos(0.2), np.sin(0.2)
+    Rz = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]], dtype=torch.float64)
+    pos, ori, euc = ee_pose_errors(p0, Rz, p0, I3)
+    assert euc.item() == 0.0 and pos.item() > 0.05 and ori.item() == pytest.approx(np.rad2deg(0.2))
+
+
+def test_evaluate_ee_goal_uses_the_log_error_and_picks_the_best_by_it():
+    """Planar4Link with an end-effector goal: two valid trajectories; the reported ee_pos_error is the mean log
+    error, the Euclidean one is its own column, and the best trajectory is the one of lowest log error."""
+    from mpd.metrics import ee_pose_errors
+
+    task = load_task("EnvPlanar4Link-RobotPlanar4Link")
+    chk = CollisionChecker(task)
+    lo, hi = task.robot.q_min.double(), task.robot.q_max.double()
+    cand = lo + torch.rand(500, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * (hi - lo)
+    free = cand[chk.configs(cand).valid]
+    qg = free[0]
+    # standing still at three other collision-free configurations (valid trajectories), away from the goal pose
+    q = free[1:4, None].expand(3, 128, 4).contiguous()
+    dense = Dense(q, torch.zeros_like(q), torch.zeros_like(q), 10.0)
+    p_goal, r_goal = task.robot.ee_pose(qg)
+    m, val, best = evaluate(chk, dense, ee_goal=(p_goal, r_goal))
+    p_end, r_end = task.robot.ee_pose(q[:, -1])
+    pos, ori, euc = ee_pose_errors(p_end, r_end, p_goal, r_goal)
+    ok = val.valid
+    assert ok.any()
+    assert m["ee_pos_error"] == pytest.approx(float(pos[ok].mean()))
+    assert m["ee_pos_error_euclidean"] == pytest.approx(float(euc[ok].mean()))
+    assert m["ee_ori_error_deg"] == pytest.approx(float(ori[ok].mean()))
+    idx = torch.nonzero(ok).flatten()
+    assert best == int(idx[pos[idx].argmin()])
+
+
+def test_vendi_of_a_single_valid_trajectory_is_missing():
+    """The authors record no diversity with fewer than two valid trajectories (1.0 would read as 'no diversity')."""
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    chk = CollisionChecker(task)
+    qs = torch.tensor([-0.2, -0.9], dtype=torch.float64)
+    qg = torch.tensor([-0.2, 0.9], dtype=torch.float64)
+    p = make_parametrization(task, "bspline")
+    ph = torch.as_tensor(p.param_phases()[p.a_free.argmax(0)], dtype=torch.float64)
+    line = qs + ph[:, None] * (qg - qs)
+    through = line.clone()
+    through[:, 0] = -0.37
+    m, val, best = evaluate(chk, _dense(task, torch.stack([line, through]), qs, qg), q_goal=qg)
+    assert val.valid.tolist() == [True, False] and m["n_valid"] == 1.0
+    assert np.isnan(m["vendi"]) and best == 0
