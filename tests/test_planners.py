@@ -201,3 +201,126 @@ def test_plan_cli_writes_outputs(tmp_path):
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["planner"] == "gp-cost" and len(doc["contexts"]) == 1 and "total" in doc["contexts"][0]["timings"]
     assert (out / "trajectories.png").stat().st_size > 0 and (out / "trajectories.npz").exists()
+
+
+def test_endpoint_gp_fit_and_posterior_match_scikit_learn():
+    """The authors' GP prior: scikit-learn's GaussianProcessRegressor with 1 * RBF(l >= |qg - qs| / 2), fitted to the
+    two end points (an independent implementation: L-BFGS-B with restarts) vs our closed-form fit."""
+    sklearn_gp = pytest.importorskip("sklearn.gaussian_process")
+    from sklearn.gaussian_process.kernels import RBF
+
+    from mpd.planners.gp_cost import endpoint_gp_posterior, fit_endpoint_gp
+
+    rng = np.random.default_rng(0)
+    cases = [rng.uniform(-1, 1, (2, 2)), rng.uniform(-2.9, 2.9, (2, 7)), np.array([[0.8, 0.2], [0.9, 0.3]])]
+    cases.append(np.array([[0.5, -0.5], [-0.5, 0.5]]))  # a.b < 0: the fit sits at the lower bound
+    phases = np.linspace(0, 1, 18)[1:-1]
+    for qs, qg in cases:
+        lb = np.linalg.norm(qg - qs) / 2
+        gpr = sklearn_gp.GaussianProcessRegressor(
+            kernel=1 * RBF(length_scale=lb, length_scale_bounds=(lb, 1e4)), n_restarts_optimizer=10, random_state=0
+        )
+        gpr.fit(np.array([[0.0], [1.0]]), np.stack([qs, qg]))
+        c_ref, l_ref = gpr.kernel_.k1.constant_value, gpr.kernel_.k2.length_scale
+        c, ell = fit_endpoint_gp(qs, qg)
+        assert ell == pytest.approx(l_ref, rel=2e-3) and c == pytest.approx(c_ref, rel=2e-3)
+        # the posterior, with scikit-learn's fitted kernel vs ours
+        mean, cov = endpoint_gp_posterior(qs, qg, phases, c_ref, l_ref)
+        m_ref, cov_ref = gpr.predict(phases[:, None], return_cov=True)
+        assert np.allclose(mean[0], m_ref, atol=1e-8)
+        assert np.allclose(cov[0], cov_ref[..., 0] if cov_ref.ndim == 3 else cov_ref, atol=1e-8)
+
+
+def test_gp_prior_samples_are_seeded_and_follow_the_posterior():
+    """GPprior+Cost's prior: repeatable with a seed (the authors' is not), and over many samples the empirical mean
+    of the raw free control points matches the GP posterior mean at linspace(0, 1, n_free + 2)[1:-1]."""
+    from mpd.planners.base import Timer
+    from mpd.planners.gp_cost import endpoint_gp_posterior, fit_endpoint_gp
+
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    planner = make_planner("gp-cost", task, device="cpu")
+    ctx = context_of(task)
+    draw = lambda seed: planner.sample_prior(  # noqa: E731
+        ctx, 4000, torch.Generator().manual_seed(seed), Timer(torch.device("cpu"))
+    )
+    a, b = draw(1), draw(1)
+    assert torch.equal(a, b) and not torch.equal(a, draw(2))
+    raw = planner.normalizer.unnormalize(a.double(), clip=False).numpy()
+    qs, qg = ctx.q_start.double().numpy(), ctx.q_goal.double().numpy()
+    c, ell = fit_endpoint_gp(qs, qg)
+    phases = np.linspace(0, 1, planner.param.n_free + 2)[1:-1]
+    mean, cov = endpoint_gp_posterior(qs, qg, phases, c, ell)
+    se = np.sqrt(np.diagonal(cov[0]))[:, None] / np.sqrt(len(raw))
+    assert np.all(np.abs(raw.mean(0) - mean[0]) < 5 * se + 1e-9)
+    assert np.allclose(raw.var(0), np.diagonal(cov[0])[:, None], rtol=0.15, atol=1e-9)
+
+
+class _LinearEps(torch.nn.Module):
+    """A stand-in denoiser with a known output, eps(x, t) = 0.3 x + 0.01 (t + 1), so that a whole guided DDIM run
+    can be computed by hand; it has the attributes the planner reads from a DiffusionModel."""
+
+    def __init__(self):
+        super().__init__()
+        from mpd.models.diffusion import get_schedule
+
+        self.schedule = get_schedule(100)
+        self.n_diffusion_steps = 100
+
+    def forward(self, x, t, context):
+        return 0.3 * x + 0.01 * (t + 1)
+
+
+def test_official_guided_step_matches_a_hand_computation():
+    """One DDIM run whose last steps are guided (official update) vs the update written out by hand: quadratic cost
+    C(x) = 1/2 |x - a|^2 in normalized space (gradient x - a), M inner iterations without noise, each clipped to
+    x_t +- delta, then sigma z added once, unclipped. Noise drawn from the same seeded generator in the same order
+    (initial x, then one z per step into a level >= 1)."""
+    from mpd.models.diffusion import get_schedule
+
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    model = random_model(task, "diffusion")
+    model.network = _LinearEps()
+    ov = {"ddim_variant": "paper", "ddim_steps": 4, "guide_fraction": 0.75, "eta": 0.5, "max_perturb": 0.05}
+    planner = make_planner("mpd", task, model=model, device="cpu", overrides=ov)
+    s = planner.settings
+    shape = (3, planner.param.n_free, task.dof)
+    target = torch.linspace(-0.5, 0.5, shape[1] * shape[2]).reshape(1, shape[1], shape[2])
+    planner.cost_grad_fn = lambda ctx, timer: (lambda x: x - target)
+    got = planner.sample(context_of(task), 3, torch.Generator().manual_seed(11), planner_timer(), None)
+
+    abar = get_schedule(100).tables["alphas_cumprod"]
+    grid = [0, 10, 40, 90]  # floor(linspace(0, sqrt(90), 4)^2), distinct: no bumping
+    pairs = [(90, 40), (40, 10), (10, 0), (0, -1)]
+    assert [int(v) for v in np.floor(np.linspace(0, np.sqrt(90), 4) ** 2)] == grid
+    gen = torch.Generator().manual_seed(11)
+    x = torch.randn(shape, generator=gen)
+    n_guided = 3  # ceil(0.75 * 4)
+    for i, (t, tn) in enumerate(pairs):
+        a_t = float(abar[t])
+        a_n = 1.0 if tn == -1 else float(abar[tn])
+        sigma = 0.5 * np.sqrt((1 - a_n) / (1 - a_t) * (1 - a_t / a_n)) if tn >= 0 else 0.0
+        eps = 0.3 * x + 0.01 * (t + 1)
+
+        def mean_step(xk, e):
+            x0 = ((xk - np.sqrt(1 - a_t) * e) / np.sqrt(a_t)).clamp(-1, 1)
+            return x0 if tn == -1 else np.sqrt(a_n) * x0 + np.sqrt(1 - a_n - sigma**2) * e
+
+        if i < len(pairs) - n_guided:
+            x_new = mean_step(x, eps)
+        else:
+            xk = x
+            for _ in range(4):
+                e = 0.25 * eps + 1.0 * (xk - target).clamp(-1, 1)
+                xk = x + (mean_step(xk, e) - x).clamp(-0.05, 0.05)
+            x_new = xk
+        if tn >= 1 and sigma > 0:
+            x_new = x_new + sigma * torch.randn(shape, generator=gen)
+        x = x_new
+    assert torch.allclose(got, x, atol=1e-6)
+    assert s.guided_steps(4) == n_guided
+
+
+def planner_timer():
+    from mpd.planners.base import Timer
+
+    return Timer(torch.device("cpu"))

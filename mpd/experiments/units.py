@@ -84,7 +84,14 @@ def run_unit(unit: Unit) -> UnitResult:
     dev = torch.device(unit.device)
     c = unit.context
     t = lambda k: None if c.get(k) is None else torch.as_tensor(c[k], dtype=torch.float32)  # noqa: E731
-    ctx = Context(t("q_start"), None if task.ee_goal else t("q_goal"), t("ee_pos"), t("ee_rot")).to(dev)
+    # an end-effector-goal context carries the dataset's goal configuration for the baselines that need one
+    ctx = Context(
+        t("q_start"),
+        None if task.ee_goal else t("q_goal"),
+        t("ee_pos"),
+        t("ee_rot"),
+        q_goal_ref=t("q_goal") if task.ee_goal else None,
+    ).to(dev)
     n = int(unit.params["n_samples"])
     result = planner.plan(ctx, n, unit.plan_seed, record_history=unit.record)
     dense = result.dense

@@ -267,7 +267,7 @@ def _context_from_goal(task, qs: np.ndarray, qg: np.ndarray):
     q_goal = torch.as_tensor(qg, dtype=torch.float32)
     if task.ee_goal:
         p, r = task.robot.ee_pose(q_goal.double())
-        return Context(q_start, None, p.float(), r.float())
+        return Context(q_start, None, p.float(), r.float(), q_goal_ref=q_goal)
     return Context(q_start, q_goal)
 
 
@@ -278,7 +278,7 @@ def _context_row(task, ec, i: int):
 
     f = lambda a: torch.as_tensor(np.asarray(a[i]), dtype=torch.float32)  # noqa: E731
     if task.ee_goal:
-        return Context(f(ec.q_start), None, f(ec.ee_pos), f(ec.ee_rot))
+        return Context(f(ec.q_start), None, f(ec.ee_pos), f(ec.ee_rot), q_goal_ref=f(ec.q_goal))
     return Context(f(ec.q_start), f(ec.q_goal))
 
 

@@ -3,7 +3,8 @@
 One OMPL RRTConnect path per sample (the paper uses one sample) in the evaluation scene, with the same planner,
 validity checker and simplification as the dataset generator, fitted to the task's parametrization, then optimized
 with the routine and step count shared by every "+Cost" baseline. With an end-effector goal, the goal configuration
-comes from batched inverse kinematics. A problem RRTConnect does not solve in its time limit falls back to the
+is the one the context carries (``Context.q_goal_ref``, the dataset's, as the authors do); a context without one gets
+batched inverse kinematics. A problem RRTConnect does not solve in its time limit falls back to the
 straight line (counted in ``info['rrt_failures']``), so the batch always has ``n_samples`` trajectories.
 ``planner.opt_steps = 0`` gives plain RRTConnect (the sampling-time experiment).
 """
@@ -34,6 +35,8 @@ class RRTConnectCost(Planner):
         with timer("total"):
             if ctx.q_goal is not None:
                 goals = ctx.q_goal.expand(n_samples, -1)
+            elif ctx.q_goal_ref is not None:
+                goals = ctx.q_goal_ref.expand(n_samples, -1)
             else:
                 from mpd.planners.goals import ik_goals
 

@@ -64,8 +64,9 @@ class PlannerSettings:
     cost_preset: Literal["official", "paper"] = "official"
     sdf_mode: Literal["nearest", "trilinear", "analytic"] = "nearest"
     # -- GP prior (GPprior+Cost) ------------------------------------------------------------------------------------
-    gp_sigma: float = 0.3  # prior std of the free control points, unit-normalized space
-    gp_lengthscale: float = 0.25  # in phase units
+    gp_prior: Literal["authors", "bridge"] = "authors"  # the authors' end-point GP regressor, or mpd's earlier bridge
+    gp_sigma: float = 0.3  # bridge only: prior std of the free control points, unit-normalized space
+    gp_lengthscale: float = 0.25  # bridge only: in phase units
     # -- RRTConnect (+Cost) -------------------------------------------------------------------------------------------
     rrt_time_limit: float = 10.0
     # -- inverse kinematics for planners that need a goal configuration (GPprior+Cost, RRTConnect+Cost) ---------------
