@@ -38,11 +38,14 @@ def work(tmp_path_factory):
             textwrap.dedent(f"""
             name = "tiny{seed}"
             task = "{TASK}"
-            n_contexts = 24
+            n_contexts = 64
             seed = {seed}
-            chunk_size = 12
+            chunk_size = 32
             [checker]
             kind = "spheres"
+            [split]
+            val = 0.3
+            test = 0.5
             """)
         )
     yield root
@@ -163,6 +166,13 @@ def test_shipped_specs_load_and_dry_run(name, tmp_path, monkeypatch):
 
 
 # ---------------------------------------------------------------------------------------------------- runs
+def expected_rows(run_dir: Path) -> int:
+    """Rows of a one-method run: the contexts of each scene (a context invalid with the extra objects is skipped
+    there, and only there)."""
+    man = json.loads((run_dir / "manifest.json").read_text())
+    return sum(c["n_contexts"] for c in man["artifacts"][TASK]["contexts"].values())
+
+
 def _run(spec_path: Path, run_dir: Path, **kw) -> pd.DataFrame:
     Runner(load_spec(spec_path), run_dir=run_dir, progress=False, **kw).run()
     return read_results(run_dir)
@@ -176,7 +186,8 @@ def test_provenance_columns_and_determinism(work):
     spec = write_spec(work, "det")
     a = _run(spec, work / "runs" / "det-a")
     b = _run(spec, work / "runs" / "det-b")
-    assert len(a) == 2 * 4 and a[["cell_key", "context_index"]].duplicated().sum() == 0
+    n = expected_rows(work / "runs" / "det-a")
+    assert 4 < n <= 2 * 4 and len(a) == n and a[["cell_key", "context_index"]].duplicated().sum() == 0
     pd.testing.assert_frame_equal(a[METRIC_COLUMNS], b[METRIC_COLUMNS])
     commit, dirty = git_state()
     lock = json.loads((load_definition(work / "tiny0.toml").data_dir / "lock.json").read_text())
@@ -186,7 +197,18 @@ def test_provenance_columns_and_determinism(work):
     for col in ("spec_hash", "run_id", "torch_version", "libraries", "device", "time_total", "plan_seed"):
         assert col in a.columns and a[col].notna().all()
     man = json.loads((work / "runs" / "det-a" / "manifest.json").read_text())
-    assert man["status"] == "completed" and man["n_rows"] == 8
+    assert man["status"] == "completed" and man["n_rows"] == n
+    # the pinned protocol: one content-addressed context file per scene, its hash in every row
+    from mpd.data.eval_contexts import load_context_file
+
+    files = man["artifacts"][TASK]["contexts"]
+    assert set(files) == {"training", "extra-objects"} and files["training"]["n_skipped"] == 0
+    assert set(a["contexts_hash"]) == {f["sha256"] for f in files.values()}
+    for scene, f in files.items():
+        cs = load_context_file(next((work / "cache" / "contexts").glob(f"{TASK}-{scene}-{f['sha256'][:16]}.npz")))
+        rows = a[a["extra_objects"] == (scene == "extra-objects")]
+        assert sorted(rows["context_index"]) == sorted(cs.index.tolist())
+        assert sorted(f["skipped_index"] + cs.index.tolist()) == list(range(4))
 
 
 def test_rerun_skips_finished_cells(work):
@@ -210,10 +232,10 @@ def test_resume_after_kill_9_loses_and_recomputes_nothing(work):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     before = {(r["cell_key"], r["context_index"]): r["finished_at"] for r in store.rows()}
-    assert 3 <= len(before) < 20, "the run should have been killed in the middle"
+    assert 3 <= len(before) < 15, "the run should have been killed in the middle"
     subprocess.run(cmd, env=env, check=True, capture_output=True)
     df = read_results(run_dir)
-    assert len(df) == 20 and not df[["cell_key", "context_index"]].duplicated().any()
+    assert len(df) == expected_rows(run_dir) and not df[["cell_key", "context_index"]].duplicated().any()
     after = {(r.cell_key, r.context_index): r.finished_at for r in df.itertuples()}
     assert all(after[k] == v for k, v in before.items()), "a row finished before the kill was recomputed"
 
@@ -287,3 +309,48 @@ def test_mlflow_run_appears_in_local_store(work):
     assert rid is not None and log_model_to_mlflow(path, f"sqlite:///{work / 'runs' / 'mlflow.db'}") is None
     hist = mlflow.MlflowClient().get_metric_history(rid, "train_loss")
     assert [(m.step, m.value) for m in hist] == [(1, 1.0), (3, 0.5)]
+
+
+def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
+    """The pinned protocol: contexts are held-out forward paths of the dataset (test split first), far enough apart,
+    chosen by the context seed; in the extra-objects scene exactly those invalid there (by the torch ground-truth
+    checker with the clearance as margin, a second implementation) are skipped; files are content-addressed and a
+    corrupted one is refused."""
+    import numpy as np
+    import torch
+
+    from mpd.collision import CollisionChecker
+    from mpd.data import eval_contexts as ec
+    from mpd.data.dataset import SPLITS, load_dataset
+    from mpd.tasks import load_task
+
+    task = load_task(TASK)
+    ds = load_dataset(work / "tiny0.toml")
+    base = ec.task_contexts(task, ds, 6, seed=0)
+    held = {int(c) for c in ds.context_id[(ds.split != SPLITS.index("train")) & ~ds.reversed]}
+    assert set(base.context_id.tolist()) <= held
+    for j, cid in enumerate(base.context_id):
+        k = int(np.flatnonzero((ds.context_id == cid) & ~ds.reversed)[0])
+        assert np.array_equal(base.q_start[j], ds.q_start[k]) and np.array_equal(base.q_goal[j], ds.q_goal[k])
+    assert (np.linalg.norm(base.q_goal - base.q_start, axis=1) >= task.spec.context.min_start_goal_distance).all()
+    other = ec.task_contexts(task, ds, 6, seed=1)
+    assert set(other.context_id.tolist()) != set(base.context_id.tolist()), "the context seed picks the contexts"
+    extra = ec.for_scene(base, task, True)
+    chk = CollisionChecker(task, extra_objects=True, margin=task.spec.collision.clearance)
+    ok = (
+        chk.configs(torch.as_tensor(base.q_start)).valid & chk.configs(torch.as_tensor(base.q_goal)).valid
+    ).numpy()
+    assert extra.index.tolist() == base.index[ok].tolist()
+    assert extra.meta["skipped_index"] == base.index[~ok].tolist() and extra.meta["n_skipped"] == int((~ok).sum())
+    again = ec.for_scene(base, task, True)
+    assert again.hash == extra.hash and again.meta["path"] == extra.meta["path"]
+    loaded = ec.load_context_file(extra.meta["path"])
+    assert np.array_equal(loaded.q_start, extra.q_start) and loaded.meta["n_skipped"] == extra.meta["n_skipped"]
+    bad = Path(extra.meta["path"]).with_name("corrupt-" + Path(extra.meta["path"]).name)
+    arrays = extra.arrays()
+    arrays["q_start"] = arrays["q_start"] + 1e-3
+    np.savez(bad, **arrays)
+    with pytest.raises(ValueError, match="does not match its hash"):
+        ec.load_context_file(bad)
+    with pytest.raises(ValueError, match="usable held-out contexts"):
+        ec.task_contexts(task, ds, 1000)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from pathlib import Path
+
 import click
 
 
@@ -145,18 +147,83 @@ def measure(task_name: str, n: int) -> None:
 
 
 @data.command()
-@click.argument("task_name")
-@click.option("--n", "n", type=int, default=100, show_default=True)
-@click.option("--refresh", is_flag=True, help="Recompute instead of reading the cache.")
-def contexts(task_name: str, n: int, refresh: bool) -> None:
-    """Compute (or show) the fixed evaluation contexts of a task."""
+@click.argument("task_name", required=False)
+@click.option("--n", "n", type=int, default=100, show_default=True, help="Contexts of the task's list.")
+@click.option(
+    "--source",
+    type=click.Choice(["held-out", "sampled"]),
+    default="held-out",
+    show_default=True,
+    help="held-out: from the dataset's held-out paths (the default protocol); sampled: dataset-independent.",
+)
+@click.option("--dataset", default=None, help="Dataset of the held-out contexts (default: <task>-paper, else -small).")
+@click.option("--seed", "context_seed", type=int, default=0, show_default=True, help="The context seed.")
+@click.option("--extra-objects", is_flag=True, help="The scene with the extra objects (invalid contexts skipped).")
+@click.option("--rotation", type=float, default=0.0, show_default=True, help="Scene rotation about z (deg).")
+@click.option("--export", "export", type=click.Path(dir_okay=False), default=None, help="Write the set (.npz or .csv).")
+@click.option("--list", "list_files", is_flag=True, help="List the stored context files (of TASK_NAME, if given).")
+@click.option("--refresh", is_flag=True, help="sampled: recompute instead of reading the cache.")
+def contexts(task_name, n, source, dataset, context_seed, extra_objects, rotation, export, list_files, refresh) -> None:
+    """The evaluation contexts of a task in a scene (mpd.data.eval_contexts): build, show, list, export."""
     import numpy as np
 
-    from mpd.data.contexts import contexts_cache_path, evaluation_contexts
+    from mpd.data import eval_contexts as ec
+
+    if list_files:
+        sets = ec.list_context_files(task_name)
+        if not sets:
+            click.echo(f"no context files under {ec.contexts_dir()}")
+        for cs in sets:
+            m = cs.meta
+            click.echo(
+                f"{cs.hash[:16]}  {cs.task}  {cs.scene}  {len(cs)} contexts ({m.get('n_skipped', 0)} skipped)  "
+                f"{m.get('source')}  seed {m.get('context_seed')}  dataset {str(m.get('dataset_hash'))[:12]}  "
+                f"{m.get('path')}"
+            )
+        return
+    if not task_name:
+        raise click.UsageError("give TASK_NAME (or --list)")
     from mpd.tasks import load_task
 
     task = load_task(task_name)
-    c = evaluation_contexts(task, n, refresh=refresh)
-    d = np.linalg.norm(c.q_goal - c.q_start, axis=1)
-    click.echo(f"{task.name}: {len(c)} contexts, start-goal distance min {d.min():.3f} mean {d.mean():.3f}")
-    click.echo(str(contexts_cache_path(task, n)))
+    if source == "held-out":
+        from mpd.data.dataset import load_dataset
+        from mpd.data.definition import DATASETS_DIR
+
+        if dataset is None:  # the paper-size dataset when it has been generated here, else the small one
+            paper = f"{task.name}-paper"
+            dataset = paper if (DATASETS_DIR / f"{paper}.lock.json").exists() else f"{task.name}-small"
+        ds = load_dataset(dataset, generate_missing=False)
+        try:
+            cs = ec.for_scene(ec.task_contexts(task, ds, n, context_seed), task, extra_objects, rotation)
+        except ValueError as e:
+            raise click.ClickException(str(e)) from None
+    else:
+        if refresh:
+            from mpd.data.contexts import evaluation_contexts
+
+            evaluation_contexts(task, n, refresh=True)
+        cs = ec.sampled_contexts(task, n, extra_objects, rotation)
+    d = np.linalg.norm(cs.q_goal - cs.q_start, axis=1)
+    click.echo(
+        f"{task.name} [{cs.scene}]: {len(cs)} contexts ({cs.meta.get('n_skipped', 0)} of {n} skipped in this scene), "
+        f"start-goal distance min {d.min():.3f} mean {d.mean():.3f}"
+    )
+    click.echo(f"sha256 {cs.hash}")
+    click.echo(cs.meta["path"])
+    if export:
+        out = Path(export)
+        if out.suffix == ".csv":
+            import pandas as pd
+
+            cols = {"index": cs.index, "dataset_context_id": cs.context_id}
+            for k in ("q_start", "q_goal", "ee_pos"):
+                a = getattr(cs, k)
+                if a is not None:
+                    cols.update({f"{k}_{j}": a[:, j] for j in range(a.shape[1])})
+            if cs.ee_rot is not None:
+                cols.update({f"ee_rot_{j}": cs.ee_rot.reshape(len(cs), 9)[:, j] for j in range(9)})
+            pd.DataFrame(cols).to_csv(out, index=False)
+        else:
+            np.savez(out, **cs.arrays())
+        click.echo(f"exported {out}")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mpd.data.eval_contexts import ContextSet
 from mpd.schema import file_sha256
 from mpd.tasks import Task, load_task
 
@@ -49,29 +50,21 @@ class ModelArtifact:
 
 
 @dataclass
-class EvalContexts:
-    """The fixed evaluation contexts of a task, as picklable numpy rows for the units."""
-
-    q_start: np.ndarray
-    q_goal: np.ndarray
-    ee_pos: np.ndarray | None
-    ee_rot: np.ndarray | None
-
-    def row(self, i: int) -> dict[str, np.ndarray]:
-        out = {"q_start": self.q_start[i], "q_goal": self.q_goal[i]}
-        if self.ee_pos is not None:
-            out["ee_pos"], out["ee_rot"] = self.ee_pos[i], self.ee_rot[i]
-        return out
-
-
-@dataclass
 class TaskArtifacts:
     task_name: str
     task_hash: str
     dataset_id: str
     dataset_hash: str
-    contexts: EvalContexts
+    contexts: dict[str, ContextSet]  # per scene (mpd.data.eval_contexts.scene_name)
+    # (lo, hi) per joint of the training split's free B-spline control points: the normalized space of the
+    # planners without a model, as the authors' baselines use the dataset's normalizer
+    data_range: tuple[list[float], list[float]] | None = None
     models: dict[tuple[str, str], ModelArtifact] = field(default_factory=dict)
+
+    def contexts_for(self, params: dict) -> ContextSet:
+        from mpd.data.eval_contexts import scene_name
+
+        return self.contexts[scene_name(bool(params["extra_objects"]), float(params["rotation_deg"] or 0.0))]
 
     def model_for(self, method: str, parametrization: str) -> ModelArtifact | None:
         from mpd.planners import get_planner_class
@@ -85,7 +78,17 @@ class TaskArtifacts:
             "dataset_id": self.dataset_id,
             "dataset_hash": self.dataset_hash,
             "models": {f"{k}-{p}": m.identity for (k, p), m in self.models.items()},
-            "n_contexts": int(len(self.contexts.q_start)),
+            "contexts": {
+                scene: {
+                    "sha256": cs.hash,
+                    "source": cs.meta.get("source"),
+                    "n_contexts": len(cs),
+                    "n_skipped": cs.meta.get("n_skipped", 0),
+                    "skipped_index": cs.meta.get("skipped_index", []),
+                    "context_seed": cs.meta.get("context_seed"),
+                }
+                for scene, cs in sorted(self.contexts.items())
+            },
         }
 
 
@@ -144,6 +147,15 @@ def training_arrays(task: Task, dataset, parametrization: str):
     )
 
 
+def data_range(task: Task, dataset) -> tuple[list[float], list[float]]:
+    """Per-joint (lo, hi) of the free B-spline control points of the training split (the models' range)."""
+    from mpd.data.dataset import SPLITS
+
+    x = training_arrays(task, dataset, "bspline")
+    train = x.x[x.split == SPLITS.index("train")].reshape(-1, task.dof).astype(np.float64)
+    return train.min(0).tolist(), train.max(0).tolist()
+
+
 def needs(spec, cells) -> list[Need]:
     """What each task of the spec needs, and whether it exists (for the dry run)."""
     from mpd.data.definition import load_definition
@@ -199,7 +211,7 @@ def _content_hash(rd) -> str | None:
 
 def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, TaskArtifacts]:
     """Datasets, evaluation contexts and models of every task of the cells, generated/trained when missing."""
-    from mpd.data.contexts import evaluation_contexts
+    from mpd.data import eval_contexts as ec
     from mpd.data.dataset import load_dataset
 
     out, jobs = {}, []
@@ -208,10 +220,21 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
         ts = spec.data.tasks[task_name]
         ds = load_dataset(ts.dataset, progress=progress)
         n_ctx = ts.n_contexts or spec.data.n_contexts
-        ec = evaluation_contexts(task, n_ctx)
-        contexts = EvalContexts(ec.q_start, ec.q_goal, ec.ee_pos, ec.ee_rot)
+        scenes = sorted(
+            {(bool(c.p["extra_objects"]), float(c.p["rotation_deg"] or 0.0)) for c in cells if c.p["task"] == task_name}
+        )
+        if ts.contexts == "held-out":
+            base = ec.task_contexts(task, ds, n_ctx, spec.data.context_seed)
+            contexts = {ec.scene_name(*sc): ec.for_scene(base, task, *sc) for sc in scenes}
+        else:
+            contexts = {ec.scene_name(*sc): ec.sampled_contexts(task, n_ctx, *sc) for sc in scenes}
         out[task_name] = TaskArtifacts(
-            task.name, task.file_hash, ds.info["identity"], ds.info["content_hash"], contexts
+            task.name,
+            task.file_hash,
+            ds.info["identity"],
+            ds.info["content_hash"],
+            contexts,
+            data_range=data_range(task, ds),
         )
         for kind, par in sorted(_model_kinds(cells, task_name)):
             jobs.append(

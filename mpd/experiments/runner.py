@@ -198,7 +198,7 @@ class Runner:
         for cell in self.cells:
             p = cell.p
             task_art = resolved[p["task"]]
-            contexts = task_art.contexts
+            contexts = task_art.contexts_for(p)
             done = store.done(cell.key)
             model = task_art.model_for(p["method"], p["parametrization"] or "bspline")
             prov = dict(
@@ -208,8 +208,13 @@ class Runner:
                 dataset_hash=task_art.dataset_hash,
                 model_id=model.identity if model else "",
                 model_hash=model.sha256 if model else "",
+                contexts_hash=contexts.hash,
+                contexts_source=contexts.meta.get("source", ""),
+                context_seed=contexts.meta.get("context_seed", -1),
             )
-            for i in range(self.n_contexts(p["task"])):
+            data_range = task_art.data_range if model is None else None
+            for j in range(len(contexts)):
+                i = int(contexts.index[j])
                 if i in done:
                     continue
                 yield Unit(
@@ -217,12 +222,13 @@ class Runner:
                     p,
                     cell.planner_overrides(),
                     i,
-                    contexts.row(i),
+                    contexts.row(j),
                     plan_seed(p["seed"], i),
                     str(model.path) if model else None,
                     self.device,
-                    record=i < record_n,
-                    provenance=prov,
+                    record=j < record_n,
+                    provenance=dict(prov, dataset_context_id=int(contexts.context_id[j])),
+                    data_range=data_range,
                 )
 
     def _execute(self, units: list[Unit], store: RowStore, on_result) -> None:

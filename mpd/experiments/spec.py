@@ -68,6 +68,9 @@ class TaskSettings:
     profile: str = "cpu"
     train_steps: int | None = None  # override the profile's step count (e.g. a short demo training)
     n_contexts: int | None = None  # override the spec's number of evaluation contexts for this task
+    # where the evaluation contexts come from (mpd.data.eval_contexts): "held-out" (the dataset's held-out paths,
+    # as the authors; the default) or "sampled" (mpd's earlier dataset-independent contexts)
+    contexts: str = "held-out"
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,8 @@ class SpecFile:
     seeds: list[int] = field(default_factory=lambda: [0])
     exclude: list[dict[str, Any]] = field(default_factory=list)
     record_contexts: int = 1  # contexts per cell streamed to the Rerun recording (with every denoising step)
+    # picks the evaluation contexts (their order in the held-out split); the seeds axis is the sampling noise only
+    context_seed: int = 0
     device: str = "auto"
 
 
@@ -200,6 +205,10 @@ def _validate(spec: SpecFile, path) -> None:
             load_task(t)
         except ConfigError as e:
             raise ConfigError(path, "axes.task", f"{t!r}: {e.detail}") from None
+        if t in spec.tasks and spec.tasks[t].contexts not in ("held-out", "sampled"):
+            raise ConfigError(
+                path, f"tasks.{t}.contexts", f"{spec.tasks[t].contexts!r} is not one of: 'held-out', 'sampled'"
+            )
         if t not in spec.tasks:
             raise ConfigError(
                 path, f"tasks.{t}", 'every task of axes.task needs a [tasks."NAME"] table with its dataset'

@@ -27,6 +27,8 @@ class Unit:
     device: str
     record: bool = False
     provenance: dict[str, Any] = field(default_factory=dict)
+    # (lo, hi) per joint: the normalized space of a planner without a model (the dataset's range)
+    data_range: tuple[list[float], list[float]] | None = None
 
 
 @dataclass
@@ -41,7 +43,7 @@ def _planner(unit: Unit):
     from mpd.planners import make_planner
     from mpd.tasks import load_task
 
-    key = (unit.cell_key, unit.model_path, unit.device)
+    key = (unit.cell_key, unit.model_path, unit.device, repr(unit.data_range))
     if key not in _CACHE:
         _CACHE.clear()  # one cell at a time per process: models and SDF grids can be large
         p = unit.params
@@ -67,6 +69,7 @@ def _planner(unit: Unit):
             parametrization=p["parametrization"] or "bspline",
             model=model,
             device=torch.device(unit.device),
+            data_range=unit.data_range,
         )
         from mpd.collision import CollisionChecker
 
