@@ -177,3 +177,30 @@ def test_grid_mode_agrees_away_from_surfaces_panda():
     c = t.robot.sphere_centres(q)
     away = (exact.env.sdf(c) - t.robot.sphere_radii).abs().min(-1).values > t.spec.environment.sdf_cell_size
     assert torch.equal(exact.configs(q[away]).env_free, grid.configs(q[away].float()).env_free)
+
+
+def test_authors_grid_lookup_reads_the_node_they_read():
+    """The authors' lookup (a measurement of how many verdicts it would flip): n = ceil(extent / cell) nodes at
+    linspace(lo, hi, n), node index clamp(round((x - lo) / extent * n), 0, n - 1), values the exact SDF there;
+    written out here with numpy for points at chosen places."""
+    import numpy as np
+
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    env = task.env(True)
+    lo, hi = (np.asarray(v, dtype=np.float64) for v in env.workspace)
+    cell = env.spec.sdf_cell_size
+    n = np.ceil((hi - lo) / cell).astype(int)
+    rng = np.random.default_rng(0)
+    x = np.concatenate([lo + rng.random((200, 2)) * (hi - lo), [lo, hi, hi + 0.3, lo - 0.3]])
+    idx = np.clip(np.round((x - lo) / (hi - lo) * n).astype(int), 0, n - 1)
+    nodes = lo + idx * (hi - lo) / (n - 1)
+    ref = env.sdf(torch.as_tensor(nodes)).numpy()
+    got = env.sdf(torch.as_tensor(x), mode="authors").numpy()
+    assert np.allclose(got, ref, atol=1e-12)
+    # the read node drifts up to one node beyond the nearest one along each axis: mostly the nearest one in the
+    # lower quarter, mostly the next one in the upper quarter
+    near = np.clip(np.round((x - lo) / ((hi - lo) / (n - 1))).astype(int), 0, n - 1)
+    off = (idx - near)[:200, 0]
+    frac = ((x[:200, 0] - lo[0]) / (hi[0] - lo[0]))
+    assert set(np.unique(off)) <= {0, 1}
+    assert off[frac < 0.25].mean() < 0.5 < off[frac > 0.75].mean()

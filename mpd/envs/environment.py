@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from mpd.envs.grid import GridSDF
+from mpd.envs.grid import AuthorsGridSDF, GridSDF
 from mpd.envs.primitives import ObjectSet, Primitive, build_primitives
 
 
@@ -34,6 +34,7 @@ class Environment:
             else None
         )
         self._grids: dict[str, GridSDF] = {}
+        self._authors_grids: dict[str, AuthorsGridSDF] = {}
 
     def __repr__(self) -> str:
         n_extra = len(self.extra) if self.extra is not None else 0
@@ -66,6 +67,12 @@ class Environment:
             if mode == "analytic":
                 r = objs.sdf(x, grad=grad)
                 d, g = r if grad else (r, None)
+            elif mode == "authors":  # the authors' lookup (a measurement only; values, no gradient)
+                if grad:
+                    raise ValueError("the authors' grid lookup is for validity measurements only (no gradient)")
+                if name not in self._authors_grids:
+                    self._authors_grids[name] = AuthorsGridSDF(objs, *self.workspace, self.spec.sdf_cell_size)
+                d, g = self._authors_grids[name].query(x), None
             else:
                 d, g = self.grid(name).query(x, mode)
             if best_d is None:

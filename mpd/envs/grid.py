@@ -74,3 +74,32 @@ class GridSDF:
 def _rows(packed: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """packed[idx] for an index tensor of any shape (index_select: 2-3x faster than indexing on CPU)."""
     return packed.index_select(0, idx.reshape(-1)).reshape(*idx.shape, packed.shape[1])
+
+
+class AuthorsGridSDF:
+    """The authors' grid lookup, for measuring what their validity verdicts would be (never used to plan or judge).
+
+    ``n = ceil(extent / cell)`` nodes per axis at ``linspace(lo, hi, n)`` (spacing extent / (n - 1)) hold the exact SDF;
+    a point reads node ``clamp(round((x - lo) / extent * n), 0, n - 1)``, which in the upper half of each axis is one
+    node beyond the nearest (``../shared/reference/README.md``, "SDF grid"). Points outside the box read the boundary
+    node. Value only.
+    """
+
+    def __init__(self, objects: ObjectSet, lo, hi, cell: float):
+        self.dim = objects.dim
+        self.lo = np.asarray(lo, dtype=np.float64)
+        self.hi = np.asarray(hi, dtype=np.float64)
+        self.shape = tuple(int(math.ceil((h - l) / cell)) for l, h in zip(self.lo, self.hi))
+        axes = [torch.linspace(float(l), float(h), n, dtype=torch.float64) for l, h, n in zip(self.lo, self.hi, self.shape)]
+        nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
+        self._values = objects.sdf(nodes).reshape(-1)
+        self._strides = torch.as_tensor([int(np.prod(self.shape[k + 1 :])) for k in range(self.dim)])
+
+    def query(self, x: torch.Tensor) -> torch.Tensor:
+        lo = torch.as_tensor(self.lo, dtype=x.dtype, device=x.device)
+        ext = torch.as_tensor(self.hi - self.lo, dtype=x.dtype, device=x.device)
+        n = torch.as_tensor(self.shape, device=x.device)
+        idx = torch.round((x - lo) / ext * n).long()
+        idx = torch.minimum(torch.maximum(idx, torch.zeros_like(idx)), n - 1)
+        flat = (idx * self._strides.to(x.device)).sum(-1)
+        return self._values.to(device=x.device, dtype=x.dtype).index_select(0, flat.reshape(-1)).reshape(flat.shape)

@@ -74,7 +74,14 @@ def _planner(unit: Unit):
         from mpd.collision import CollisionChecker
 
         checker = CollisionChecker(task, bool(p["extra_objects"]), float(p["rotation_deg"] or 0.0))
-        _CACHE[key] = (task, planner, checker)
+        # the authors' grid lookup, to count the verdicts it would flip (README, "Paper vs the authors' configs");
+        # 2-D tasks only: their 3-D grids would cost seconds and ~64 MB per scene to build
+        authors = None
+        if task.dim == 2:
+            authors = CollisionChecker(
+                task, bool(p["extra_objects"]), float(p["rotation_deg"] or 0.0), sdf_mode="authors"
+            )
+        _CACHE[key] = (task, planner, checker, authors)
     return _CACHE[key]
 
 
@@ -83,7 +90,7 @@ def run_unit(unit: Unit) -> UnitResult:
     from mpd.metrics import evaluate
     from mpd.planners import Context
 
-    task, planner, checker = _planner(unit)
+    task, planner, checker, authors_checker = _planner(unit)
     dev = torch.device(unit.device)
     c = unit.context
     t = lambda k: None if c.get(k) is None else torch.as_tensor(c[k], dtype=torch.float32)  # noqa: E731
@@ -98,9 +105,10 @@ def run_unit(unit: Unit) -> UnitResult:
     n = int(unit.params["n_samples"])
     result = planner.plan(ctx, n, unit.plan_seed, record_history=unit.record)
     dense = result.dense
+    d64 = _to_cpu64(dense)
     metrics, validity, best = evaluate(
         checker,
-        _to_cpu64(dense),
+        d64,
         q_goal=None if task.ee_goal else ctx.q_goal.cpu().double(),
         ee_goal=None if not task.ee_goal else (ctx.ee_pos.cpu().double(), ctx.ee_rot.cpu().double()),
     )
@@ -113,6 +121,12 @@ def run_unit(unit: Unit) -> UnitResult:
     row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(unit.overrides.items()))
     row.update(metrics)
     row["best_index"] = -1 if best is None else best
+    if authors_checker is not None:
+        theirs = authors_checker.trajectories(d64.q, d64.dq_dt, d64.ddq_dt2).valid
+        ours = validity.valid.cpu()
+        row["fraction_valid_authors_grid"] = float(theirs.double().mean())
+        row["n_flips_valid_to_invalid"] = int((ours & ~theirs).sum())
+        row["n_flips_invalid_to_valid"] = int((~ours & theirs).sum())
     for k, v in result.timings.items():
         if k == "cost_gradient_calls":
             row["n_cost_gradient_calls"] = int(v)
