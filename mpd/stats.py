@@ -106,6 +106,8 @@ def rate(x) -> Estimate:
     x = finite(x)
     if len(x) == 0:
         return Estimate(math.nan, math.nan, math.nan, 0)
+    if not np.all((x == 0) | (x == 1)):
+        raise ValueError(f"a rate needs values 0 or 1 per context, got {sorted(set(x.tolist()))[:5]}")
     lo, hi = wilson(float(x.sum()), len(x))
     return Estimate(float(x.mean()), lo, hi, len(x))
 

@@ -94,6 +94,8 @@ def test_rate_interval_is_wilsons(k, n):
     assert est.value == pytest.approx(k / n)
     assert est.lo == pytest.approx(ref.low, abs=1e-12) and est.hi == pytest.approx(ref.high, abs=1e-12)
     assert est.hi - est.lo > 0.1  # unlike a bootstrap, not a point at 0 % or 100 %
+    with pytest.raises(ValueError, match=r"values 0 or 1 per context, got \[0.0, 100.0\]"):
+        stats.rate([0.0, 100.0])
 
 
 def test_paired_difference_resamples_contexts_jointly():
