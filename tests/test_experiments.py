@@ -277,6 +277,13 @@ def test_compare_same_runs_and_flag_changed_dataset(work):
     _run(spec_c, c)
     table, notes = compare_runs(a, c)
     assert table["inputs_changed"].str.contains("dataset_hash").all()
+    # the statistical comparison: a rerun on this machine reproduces the run, another dataset does not
+    cmd = [sys.executable, "-m", "mpd.cli", "runs", "compare", "--equivalent"]
+    same = subprocess.run([*cmd, str(a), str(b)], capture_output=True, text=True)
+    assert same.returncode == 0, same.stderr
+    assert "2 bit-identical (of 2 cells)" in same.stdout
+    other = subprocess.run([*cmd, str(a), str(c)], capture_output=True, text=True)
+    assert other.returncode == 1 and "dataset_hash changed in 2 cells" in other.stderr
 
 
 def test_mlflow_run_appears_in_local_store(work):

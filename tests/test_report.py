@@ -16,6 +16,7 @@ from mpd.viz.report_data import EXTRA, TRAIN, main_slice, prepare
 from mpd.viz.report_tables import paper_comparison, paper_numbers, paper_table
 
 PNG = b"\x89PNG\r\n\x1a\n"
+ROOT = Path(__file__).resolve().parents[1]
 SIMPLE, WAREHOUSE, SPHERES = "EnvSimple2D-RobotPointMass2D", "EnvWarehouse-RobotPanda", "EnvSpheres3D-RobotPanda"
 METHODS = ("gp-cost", "cvae", "cvae-cost", "dprior", "dprior-cost", "mpd", "rrtconnect-cost")
 COSTS = ("acceleration", "chain_rule", "collision", "dense", "fk", "joint_limits", "velocity")
@@ -260,3 +261,39 @@ def test_report_on_a_partial_run_skips_figures(tmp_path):
     text = build_report(run, recordings=False, formats=("png",), dpi=60).read_text()
     assert "figures/swarm.png" in text and "Not produced" in text
     assert "None of the" in (run / "report" / "paper.md").read_text()
+
+
+def test_paired_rows_pair_the_same_contexts(prepared):
+    """MPD against each baseline: the mean of MPD - baseline over the contexts both planned, computed here with a
+    merge on (seed, context), and P(MPD better) from the same pairs."""
+    from mpd.viz.report_stats import paired_rows
+
+    rows = paired_rows(prepared)
+    assert {r["method"] for r in rows} == set(METHODS) - {"mpd"}
+    r = next(r for r in rows if r["task"] == WAREHOUSE and r["scene"] == EXTRA and r["method"] == "dprior-cost")
+    d, _ = main_slice(prepared)
+    g = d[(d.task == WAREHOUSE) & d.extra_objects]
+    m = g[g.method == "mpd"].merge(g[g.method == "dprior-cost"], on=["seed", "context_index"], suffixes=("", "_b"))
+    diff = m["fraction_valid"] - m["fraction_valid_b"]
+    fv = r["metrics"]["fraction_valid"]
+    assert r["contexts"] == len(m) == 5
+    assert fv.difference.value == pytest.approx(diff.mean())
+    assert fv.difference.lo <= diff.mean() <= fv.difference.hi
+    assert fv.p_improvement.value == pytest.approx(((diff > 0) + 0.5 * (diff == 0)).mean())
+    ee = r["metrics"]["ee_pos_error"]  # lower is better: P(MPD better) counts the contexts where MPD's is lower
+    e = m["ee_pos_error"] - m["ee_pos_error_b"]
+    assert ee.p_improvement.value == pytest.approx(((e < 0) + 0.5 * (e == 0)).mean())
+
+
+def test_report_tables_carry_intervals(tmp_path):
+    run = make_run(tmp_path, n_ctx=4, histories=False, small=True)
+    build_report(run, recordings=False, formats=("png",), dpi=50, reference=None)
+    summary = (run / "report" / "summary.md").read_text()
+    assert "Mean [95 % interval]" in summary and "## Interquartile mean" in summary and "contexts for ± 5 pp" in summary
+    paired = (run / "report" / "paired.md").read_text()
+    assert "| MPD vs |" in paired and "P(MPD better)" in paired
+    assert "No reference run" in (run / "report" / "reproducibility.md").read_text()
+    # the committed quick run as reference: no cell of this synthetic run is in it
+    build_report(run, recordings=False, formats=("png",), dpi=50, reference=ROOT / "reports" / "quick")
+    repro = (run / "report" / "reproducibility.md").read_text()
+    assert "only in the reference" in repro and "does not reproduce it" in repro

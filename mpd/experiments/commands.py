@@ -118,16 +118,35 @@ def runs_show(run):
 @click.argument("run_a")
 @click.argument("run_b")
 @click.option("--tol", type=float, default=0.0, show_default=True, help="ignore differences up to this size")
-def runs_compare(run_a, run_b, tol):
-    """Per-cell metric differences B - A, flagging cells whose inputs (task, dataset, model) changed."""
+@click.option(
+    "--equivalent",
+    is_flag=True,
+    help="assert that B reproduces A: exit 1 unless every cell is bit-identical or equivalent within noise and "
+    "no task file or dataset changed",
+)
+def runs_compare(run_a, run_b, tol, equivalent):
+    """Per-cell metric differences B - A, flagging cells whose inputs (task, dataset, model) changed, then per
+    cell and metric whether B differs from A beyond noise (paired permutation tests over contexts, false-discovery
+    rate 5 %)."""
     import pandas as pd
 
+    from mpd.experiments.reproduce import compare, format_comparison
     from mpd.experiments.runner import resolve_run
     from mpd.experiments.tracking import compare_runs
 
-    table, notes = compare_runs(resolve_run(run_a), resolve_run(run_b), tol)
+    a, b = resolve_run(run_a), resolve_run(run_b)
+    table, notes = compare_runs(a, b, tol)
     with pd.option_context("display.width", 220, "display.max_columns", 30, "display.max_rows", 500):
         click.echo(table.to_string(index=False, float_format=lambda x: f"{x:+.4f}"))
     for n in notes:
         click.echo(n)
+    result = compare(a, b, tol)
+    click.echo("")
+    click.echo(format_comparison(result))
+    if equivalent:
+        if result.equivalent:
+            click.echo(f"equivalent: {b.name} reproduces {a.name}")
+        else:
+            click.echo(f"not equivalent: {'; '.join(result.failures)}", err=True)
+            sys.exit(1)
     sys.exit(0)

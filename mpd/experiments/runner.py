@@ -23,7 +23,7 @@ from mpd.experiments.results import RowStore, read_results, write_json, write_pa
 from mpd.experiments.spec import Cell, Spec
 from mpd.experiments.units import Unit, UnitResult, run_unit
 from mpd.paths import runs_dir
-from mpd.provenance import git_state, provenance
+from mpd.provenance import cpu_model, git_state, provenance
 
 log = logging.getLogger(__name__)
 
@@ -176,6 +176,7 @@ class Runner:
             "executor": self.executor,
             "workers": self.workers,
             "device": self.device,
+            "cpu": cpu_model(),
             "provenance": provenance(),
             "started_at": prev.get("started_at", time.time()),
             "resumed_at": time.time() if prev else None,

@@ -30,13 +30,19 @@ def _resolve(run: str) -> Path:
 @click.argument("run", default="latest")
 @click.option("--no-recordings", is_flag=True, help="do not (re)build the Rerun recordings")
 @click.option("--force", is_flag=True, help="rebuild every recording, also those newer than their history")
-def report(run: str, no_recordings: bool, force: bool) -> None:
+@click.option(
+    "--reference",
+    default=None,
+    help="the run to compare this one with in reproducibility.md (default: the committed reports/<spec>/)",
+)
+def report(run: str, no_recordings: bool, force: bool, reference: str | None) -> None:
     """Rebuild the recordings and the report of RUN (a run folder, a run id, `latest`, or a spec name: its latest
     run), and print where its index.md is."""
     from mpd.viz.report import build_report
 
     run_dir = _resolve(run)
-    index = build_report(run_dir, recordings=not no_recordings, force_recordings=force)
+    ref = _resolve(reference) if reference else "auto"
+    index = build_report(run_dir, recordings=not no_recordings, force_recordings=force, reference=ref)
     recs = sorted((run_dir / "recordings").glob("*.rrd")) if (run_dir / "recordings").exists() else []
     click.echo(f"report: {index}")
     if recs:

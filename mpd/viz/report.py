@@ -6,7 +6,10 @@ Markdown: nothing in it depends on when or where it was built.
 
     report/
       index.md            one page: provenance, figures, tables, recordings
-      summary.md          mean ± std over contexts per task x scene x method
+      summary.md          mean [95 % interval] over contexts per task x scene x method, interquartile means, and
+                          how many contexts a claim needs
+      paired.md           MPD against each baseline on the same contexts (mean difference, P(MPD better))
+      reproducibility.md  every cell against a reference run: bit-identical, equivalent, differs, and why
       paper.md            the paper's stated numbers beside ours
       timing.md           time per cell, per cost
       figures/<name>.png|.pdf
@@ -27,10 +30,28 @@ import pandas as pd
 
 from mpd.experiments.results import read_results
 from mpd.viz.report_data import EXTRA, TRAIN, method_label, method_order, prepare, short_task, task_order
-from mpd.viz.report_figures import FIGURES, add_caption
+from mpd.viz.report_figures import FIGURES, add_caption, ee_goal
+from mpd.viz.report_stats import (
+    PAIRED_NOTE,
+    contexts_summary,
+    contexts_table,
+    default_reference,
+    iqm_table,
+    paired_table,
+    reproducibility,
+)
 from mpd.viz.report_tables import markdown_table, paper_table, summary_table, timing_table
 
 log = logging.getLogger(__name__)
+
+SUMMARY_NOTE = (
+    "Mean [95 % interval] over contexts: a bootstrap over the cell's contexts (2000 resamples, seeded), Wilson's "
+    "interval for success (0 or 1 per context)."
+)
+IQM_NOTE = (
+    "Interquartile mean (the mean of the middle 50 % of contexts) [95 % bootstrap interval], for the metrics whose "
+    "distribution over contexts is skewed: a few failed contexts pull the mean, not the IQM."
+)
 
 
 @dataclass
@@ -307,10 +328,13 @@ def build_report(
     force_recordings: bool = False,
     formats: tuple[str, ...] = ("png", "pdf"),
     dpi: int = 200,
+    reference: str | Path | None = "auto",
 ) -> Path:
     """(Re)build ``run_dir/report/`` and, with ``recordings``, ``run_dir/recordings/``; returns ``index.md``.
 
-    ``formats`` and ``dpi``: of the figure files (the Markdown links the PNG and, when written, the PDF)."""
+    ``formats`` and ``dpi``: of the figure files (the Markdown links the PNG and, when written, the PDF).
+    ``reference``: the run this one is compared with in ``reproducibility.md``; ``"auto"``: the committed run of
+    the same spec (``reports/<spec>/``) when there is one and it is not this run."""
     if "png" not in formats:
         raise ValueError(f"formats {formats!r}: the report shows the PNG files, so 'png' must be one of them")
     run_dir = Path(run_dir)
@@ -341,7 +365,17 @@ def build_report(
     summary = summary_table(d)
     paper = paper_table(d)
     timing = timing_table(d)
-    _write(out / "summary.md", f"# Summary: {info['run_id']}\n\nMean ± std over contexts.\n\n{summary}\n")
+    paired = paired_table(d, {t for t in d["task"].unique() if ee_goal(d, t)})
+    contexts = contexts_summary(d)
+    ref = default_reference(run_dir, info["spec"]) if reference == "auto" else reference
+    repro_page, repro_line = reproducibility(run_dir, Path(ref) if ref is not None else None, info["spec"])
+    _write(
+        out / "summary.md",
+        f"# Summary: {info['run_id']}\n\n{SUMMARY_NOTE}\n\n{summary}\n\n## Interquartile mean\n\n"
+        f"{IQM_NOTE}\n\n{iqm_table(d)}\n\n## How many contexts\n\n{contexts}\n\n{contexts_table(d)}\n",
+    )
+    _write(out / "paired.md", f"# MPD against each baseline: {info['run_id']}\n\n{PAIRED_NOTE}\n\n{paired}\n")
+    _write(out / "reproducibility.md", repro_page)
     _write(out / "paper.md", f"# The paper's numbers beside ours: {info['run_id']}\n\n{paper}")
     _write(
         out / "timing.md",
@@ -357,7 +391,9 @@ def build_report(
     lines += [
         "## Tables",
         "",
-        "- [Summary: mean ± std over contexts](summary.md)",
+        "- [Summary: mean [95 % interval] over contexts, interquartile means, contexts needed](summary.md)",
+        "- [MPD against each baseline on the same contexts](paired.md)",
+        "- [Reproducibility against a reference run](reproducibility.md)",
         "- [The paper's numbers beside ours](paper.md)",
         "- [Timings](timing.md)",
         "",
@@ -366,11 +402,23 @@ def build_report(
         "### The paper's numbers beside ours",
         "",
         paper,
+        "### MPD against each baseline",
+        "",
+        PAIRED_NOTE,
+        "",
+        paired,
+        "",
         "### Summary",
         "",
-        "Mean ± std over contexts.",
+        SUMMARY_NOTE,
         "",
         summary,
+        "",
+        contexts + " Per cell: [summary.md](summary.md#how-many-contexts).",
+        "",
+        "### Reproducibility",
+        "",
+        repro_line + " Per cell: [reproducibility.md](reproducibility.md).",
         "",
     ]
     lines += _figures_md(entries, "pdf" in formats)

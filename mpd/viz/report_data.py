@@ -11,11 +11,14 @@ import functools
 import numpy as np
 import pandas as pd
 
+from mpd import stats
+
 TRAIN, EXTRA = "training environment", "extra objects"
 # the axes of a cell besides task, method and scene; a figure that compares methods keeps one value of each
 VARIANT_AXES = ("parametrization", "preset", "sampler", "n_samples", "overrides", "rotation_deg")
 # preferred values of those axes (the paper's main setting) when a run has several
 PREFERRED = {"parametrization": "bspline", "preset": "official", "n_samples": 100, "rotation_deg": 0.0, "overrides": ""}
+BINARY = ("success",)  # 0 or 1 per context: Wilson's interval, not the bootstrap
 # metrics of the summary table: (column, header, scale, format); scale turns fractions into % and m into cm
 SUMMARY = (
     ("success", "success [%]", 100.0, "{:.1f}"),
@@ -144,3 +147,25 @@ def mean_std(x: pd.Series, scale: float = 1.0, fmt: str = "{:.3g}") -> str:
     if len(x) == 1:
         return fmt.format(x.iloc[0])
     return f"{fmt.format(x.mean())} ± {fmt.format(x.std(ddof=1))}"
+
+
+def scaled(e: stats.Estimate, scale: float) -> stats.Estimate:
+    return stats.Estimate(e.value * scale, e.lo * scale, e.hi * scale, e.n)
+
+
+def interval(x, scale: float = 1.0, binary: bool = False) -> stats.Estimate:
+    return scaled(stats.mean_interval(pd.to_numeric(pd.Series(x), errors="coerce"), binary=binary), scale)
+
+
+def fmt_estimate(e: stats.Estimate, fmt: str = "{:.3g}", bold_if_excludes_zero: bool = False) -> str:
+    """``value [lo, hi]``; the value alone with one context; ``–`` with none."""
+    if e.n == 0 or not np.isfinite(e.value):
+        return "–"
+    if not (np.isfinite(e.lo) and np.isfinite(e.hi)):
+        return fmt.format(e.value)
+    text = f"{fmt.format(e.value)} [{fmt.format(e.lo)}, {fmt.format(e.hi)}]"
+    return f"**{text}**" if bold_if_excludes_zero and e.excludes(0.0) else text
+
+
+def mean_ci(x, scale: float = 1.0, fmt: str = "{:.3g}", binary: bool = False) -> str:
+    return fmt_estimate(interval(x, scale, binary), fmt)

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from mpd import stats
 from mpd.viz.report_ablations import (
     batch_size_figure,
     parametrization_time_figure,
@@ -32,7 +33,6 @@ from mpd.viz.report_style import (
     method_legend,
     palette,
     set_note,
-    wilson,
 )
 from mpd.viz.report_tables import cost_columns, gradient_calls
 from mpd.viz.scene import style
@@ -101,9 +101,9 @@ def beeswarm(y: np.ndarray, diameter: float, max_half_width: float) -> np.ndarra
 
 
 def _swarm_panel(ax, g: pd.DataFrame, col: str, scale: float, methods: list[str], ylim, size_in) -> None:
-    """One panel of Fig. 6: success as bars with a 95% interval, every other metric as a swarm per method; the
-    cross at the mean. ``ylim`` fixes the y range first, so the swarm can be laid out in inches (``size_in``:
-    the panel's approximate width and height)."""
+    """One panel of Fig. 6: success as bars with Wilson's 95% interval, every other metric as a swarm per method
+    with the 95% bootstrap interval of its mean; the cross at the mean. ``ylim`` fixes the y range first, so the
+    swarm can be laid out in inches (``size_in``: the panel's approximate width and height)."""
     pal = palette(methods)
     x = g.assign(_y=pd.to_numeric(g[col], errors="coerce") * scale)
     ax.set_xlim(-0.6, len(methods) - 0.4)
@@ -113,13 +113,13 @@ def _swarm_panel(ax, g: pd.DataFrame, col: str, scale: float, methods: list[str]
             v = x.loc[x["method"] == m, "_y"].dropna() / 100.0
             if v.empty:
                 continue
-            lo, hi = wilson(v.sum(), len(v))
+            lo, hi = stats.wilson(v.sum(), len(v))
             c = pal[method_label(m)]
             ax.bar(i, 100 * v.mean(), width=0.7, color=c, alpha=0.45, edgecolor=c)
             ax.errorbar(
                 i,
                 100 * v.mean(),
-                yerr=[[100 * (v.mean() - lo)], [100 * (hi - v.mean())]],
+                yerr=[[100 * abs(v.mean() - lo)], [100 * abs(hi - v.mean())]],
                 color="0.2",
                 lw=0.8,
                 capsize=1.5,
@@ -139,6 +139,10 @@ def _swarm_panel(ax, g: pd.DataFrame, col: str, scale: float, methods: list[str]
             continue
         off = beeswarm(v * in_per_y, dot / 72 * 1.05, 0.42 * in_per_x) / in_per_x
         ax.scatter(i + off, v, s=dot**2, color=pal[method_label(m)], lw=0, alpha=0.85, zorder=3)
+        ci = stats.bootstrap(v)
+        if np.isfinite(ci.lo):  # the 95 % interval of the mean (bootstrap over contexts); none with one context
+            yerr = [[abs(ci.value - ci.lo)], [abs(ci.hi - ci.value)]]
+            ax.errorbar(i, ci.value, yerr=yerr, color="0.1", lw=1.1, capsize=2.2, capthick=1.1, zorder=5)
         mean_cross(ax, [i], [v.mean()])
 
 

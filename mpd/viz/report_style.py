@@ -7,7 +7,6 @@ the scene figures); the cross marks the mean, as in the paper.
 
 from __future__ import annotations
 
-import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
@@ -73,17 +72,6 @@ def add_caption(fig: Figure, caption: str) -> None:
         tb = text.get_window_extent(fig._get_renderer()).transformed(fig.dpi_scale_trans.inverted())
     # the saved area, caption included: saving with it skips the extra draw that bbox_inches="tight" costs
     fig._mpd_bbox = Bbox.union([bb, tb]).padded(0.05)
-
-
-def wilson(k: float, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95% Wilson interval of a success rate: sensible at 0 and 1, unlike mean ± std."""
-    if n == 0:
-        return (np.nan, np.nan)
-    p = k / n
-    den = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / den
-    h = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return c - h, c + h
 
 
 def mean_cross(ax, xs, ys) -> None:

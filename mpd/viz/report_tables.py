@@ -1,4 +1,5 @@
-"""Markdown tables of a run: the summary (mean ± std over contexts), the paper's numbers beside ours, the timings.
+"""Markdown tables of a run: the summary (mean [95 % interval] over contexts), the paper's numbers beside ours,
+the timings.
 
 Deterministic: rows sorted by task (paper order), scene, method (paper order) and the variant axes; numbers
 formatted with fixed precision.
@@ -14,10 +15,13 @@ import numpy as np
 import pandas as pd
 
 from mpd.viz.report_data import (
+    BINARY,
     EXTRA,
     SUMMARY,
     TRAIN,
     VARIANT_AXES,
+    interval,
+    mean_ci,
     mean_std,
     method_label,
     method_order,
@@ -80,14 +84,14 @@ def _fmt_axis(v) -> str:
 
 
 def summary_table(d: pd.DataFrame) -> str:
-    """Mean ± std over contexts per task × scene × method (× the variant axes that vary in the run)."""
+    """Mean [95 % interval] over contexts per task × scene × method (× the variant axes that vary in the run)."""
     extra = _varying(d)
     mets = [m for m in SUMMARY if m[0] in d.columns]
     header = ["task", "scene", "method", *extra, "contexts", *[m[1] for m in mets]]
     rows = []
     for k, g in _groups(d, extra):
         row = [k["task"], k["scene"], method_label(k["method"]), *[_fmt_axis(k[c]) for c in extra], str(len(g))]
-        row += [mean_std(g[col], scale, fmt) for col, _, scale, fmt in mets]
+        row += [mean_ci(g[col], scale, fmt, col in BINARY) for col, _, scale, fmt in mets]
         rows.append(row)
     align = ["l"] * (3 + len(extra)) + ["r"] * (1 + len(mets))
     return markdown_table(header, rows, align)
@@ -183,6 +187,7 @@ def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
         if num["sentence"] not in sentences:
             sentences.append(num["sentence"])
         x = g[num["metric"]].astype(float).dropna() * float(num.get("scale", 1.0))
+        ci = interval(g[num["metric"]].astype(float), float(num.get("scale", 1.0)), num["metric"] in BINARY)
         rows.append(
             {
                 "task": num["task"],
@@ -194,6 +199,8 @@ def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
                 "paper_text": str(num["value"]),
                 "ours": float(x.mean()),
                 "ours_std": float(x.std(ddof=1)) if len(x) > 1 else float("nan"),
+                "ours_lo": ci.lo,
+                "ours_hi": ci.hi,
                 "contexts": int(len(x)),
                 "n_samples": int(g["n_samples"].iloc[0]) if "n_samples" in g.columns else None,
                 "ref": sentences.index(num["sentence"]) + 1,
@@ -210,7 +217,7 @@ def _num(v: float, like: str) -> str:
 
 
 def paper_table(d: pd.DataFrame) -> str:
-    """The paper's numbers beside ours (mean ± std over contexts), with the sentences they come from."""
+    """The paper's numbers beside ours (mean [95 % interval] over contexts), with the sentences they come from."""
     t, sentences = paper_comparison(d)
     total = len(paper_numbers())
     if t.empty:
@@ -220,7 +227,9 @@ def paper_table(d: pd.DataFrame) -> str:
     for _, r in t.iterrows():
         unit = r["unit"] if r["unit"] in ("%", "°", "") else f" {r['unit']}"
         ours = _num(r["ours"], r["paper_text"]) + (
-            "" if np.isnan(r["ours_std"]) else f" ± {_num(r['ours_std'], r['paper_text'])}"
+            ""
+            if np.isnan(r["ours_lo"])
+            else f" [{_num(r['ours_lo'], r['paper_text'])}, {_num(r['ours_hi'], r['paper_text'])}]"
         )
         rows.append(
             [
@@ -235,7 +244,8 @@ def paper_table(d: pd.DataFrame) -> str:
                 f"[{r['ref']}]" + (f" ({r['note']})" if r["note"] else ""),
             ]
         )
-    out = [markdown_table(header, rows, ["l", "l", "l", "l", "r", "r", "r", "r", "l"]), ""]
+    out = ["Ours: mean [95 % interval] over contexts (bootstrap; Wilson's interval for success).", ""]
+    out += [markdown_table(header, rows, ["l", "l", "l", "l", "r", "r", "r", "r", "l"]), ""]
     out.append(f"{len(t)} of the {total} numbers stated in the paper's text have a matching cell in this run.")
     out.append("")
     out += [f"[{i}] “{s}”  " for i, s in enumerate(sentences, 1)]
