@@ -130,15 +130,12 @@ def plan(
         raise ConfigError("--planner", "", str(e)) from None
     if n_samples < 1 or n_contexts < 1:
         raise ConfigError("--n-samples/--n-contexts", "", "must be positive")
-    ov = {}
-    for item in overrides:
-        k, _, v = item.partition("=")
-        try:
-            ov[k] = json.loads(v)
-        except json.JSONDecodeError:
-            ov[k] = v
+    from mpd.planners.validation import check_task_settings, parse_assignments
+
+    ov = parse_assignments(overrides, "--set")  # type and range of every setting, before a model is loaded
     if sampler != "ddim":
         ov["sampler"] = sampler
+    check_task_settings(task)
     qs, qg = _vector(start, "start", task.dof), _vector(goal, "goal", task.dof)
     if (qs is None) != (qg is None):
         raise ConfigError("--start/--goal", "", "give both a start and a goal, or neither")
