@@ -153,7 +153,7 @@ def needs(spec, cells) -> list[Need]:
 
     out = []
     for task_name in sorted({c.p["task"] for c in cells}):
-        task = load_task(task_name)
+        task = load_task(spec.task_file(task_name))
         ts = spec.data.tasks[task_name]
         rd = load_definition(ts.dataset)
         bad = chunk_states(rd)
@@ -204,9 +204,9 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
 
     out, jobs = {}, []
     for task_name in sorted({c.p["task"] for c in cells}):
-        task = load_task(task_name)
+        task = load_task(spec.task_file(task_name))
         ts = spec.data.tasks[task_name]
-        ds = load_dataset(ts.dataset, progress=progress)
+        ds = load_dataset(ts.dataset, progress=progress, create_lock=False)  # a run writes only the cache
         n_ctx = ts.n_contexts or spec.data.n_contexts
         ec = evaluation_contexts(task, n_ctx)
         contexts = EvalContexts(ec.q_start, ec.q_goal, ec.ee_pos, ec.ee_rot)

@@ -27,6 +27,7 @@ class Unit:
     device: str
     record: bool = False
     provenance: dict[str, Any] = field(default_factory=dict)
+    task_path: str | None = None  # the task's file (a task given by path is not found by its name)
 
 
 @dataclass
@@ -45,7 +46,7 @@ def _planner(unit: Unit):
     if key not in _CACHE:
         _CACHE.clear()  # one cell at a time per process: models and SDF grids can be large
         p = unit.params
-        task = load_task(p["task"])
+        task = load_task(unit.task_path or p["task"])
         model = None
         if unit.model_path:
             model = load_model(
