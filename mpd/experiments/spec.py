@@ -140,7 +140,7 @@ class Spec:
     def cells(self, only: dict[str, list[Any]] | None = None) -> list[Cell]:
         """The matrix: Cartesian product of the axes, minus excludes, restricted by ``only``, with axes that a method
         does not use collapsed to None (so e.g. `sampler` does not multiply GPprior+Cost cells)."""
-        from mpd.planners import PLANNERS
+        from mpd.planners import get_planner_class
 
         axes = dict(self.data.axes)
         for k, v in DEFAULTS.items():
@@ -155,7 +155,7 @@ class Spec:
                 continue
             if only and not all(any(_match(p.get(k), v) for v in vals) for k, vals in only.items()):
                 continue
-            planner = PLANNERS[p["method"]]
+            planner = get_planner_class(p["method"])
             for a in planner.unused_axes:
                 if a in p:
                     p[a] = None
@@ -182,7 +182,7 @@ def _check_value(path, axis: str, value: Any, allowed) -> None:
 
 
 def _validate(spec: SpecFile, path) -> None:
-    from mpd.planners import PLANNERS
+    from mpd.planners import get_planner_class
 
     settings_fields = {f.name: f for f in dataclasses.fields(PlannerSettings)}
     for axis, values in spec.axes.items():
@@ -201,8 +201,13 @@ def _validate(spec: SpecFile, path) -> None:
             allowed = ", ".join([*AXES, PLANNER_PREFIX + "<setting>"])
             raise ConfigError(path, f"axes.{axis}", f"unknown axis (allowed: {allowed})")
         for v in values:
-            if axis == "method" and v not in PLANNERS:
-                raise ConfigError(path, "axes.method", f"unknown method {v!r} (known: {', '.join(PLANNERS)})")
+            if axis == "method":
+                if not isinstance(v, str):
+                    raise ConfigError(path, "axes.method", f"{v!r} is not a planner name")
+                try:
+                    get_planner_class(v)  # a built-in, an installed entry point or package.module:Class
+                except ValueError as e:
+                    raise ConfigError(path, "axes.method", str(e)) from None
             if axis in ("n_samples", "seed") and (
                 not isinstance(v, int) or isinstance(v, bool) or (axis == "n_samples" and v < 1)
             ):
@@ -272,6 +277,9 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
             raise ConfigError(
                 path, f"tasks.{key}", f"task {name!r} has two tables, [tasks.{keys[name]!r}] and [tasks.{key!r}]"
             )
+        near = Path(path).parent / ts.dataset if path is not None else None
+        if near is not None and not Path(ts.dataset).is_absolute() and near.is_file():
+            ts = dataclasses.replace(ts, dataset=str(near.resolve()))  # a definition next to the spec
         tables[name], keys[name] = ts, key
     for t in spec.axes["task"]:
         if alias[t] not in tables:
@@ -309,11 +317,11 @@ def load_spec(name_or_path: str | Path) -> Spec:
 
 
 def _check_combinations(spec: Spec, path) -> None:
-    from mpd.planners import PLANNERS
+    from mpd.planners import get_planner_class
 
     for cell in spec.cells():
         p = cell.p
-        planner = PLANNERS[p["method"]]
+        planner = get_planner_class(p["method"])
         problem = planner.unsupported(p)
         if problem:
             raise ConfigError(
