@@ -60,9 +60,7 @@ def run_dir(tmp_path_factory):
     (run / "histories").mkdir(parents=True)
     (run / "manifest.json").write_text(json.dumps({"run_id": "run", "cells": []}))
     row = {"task": TASK, "method": "mpd", "extra_objects": False, "context_index": 0, "cell_key": "k"}
-    np.savez_compressed(
-        run / "histories" / "k-ctx0.npz", **fake_history(TASK, S=2), row_json=np.array(json.dumps(row))
-    )
+    np.savez_compressed(run / "histories" / "k-ctx0.npz", **fake_history(TASK, S=2), row_json=np.array(json.dumps(row)))
     return run
 
 

@@ -56,9 +56,7 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
     help="torch threads of the planning process with --workers 1 (worker processes always use 1); set it on a busy "
     "machine: more threads than free cores makes OpenMP spin and can be 10x slower",
 )
-def run(
-    spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, keep_going, threads
-):
+def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, keep_going, threads):
     """Run an experiment SPEC (a name under benchmarks/specs/ or a path)."""
     from mpd.experiments.runner import Runner
     from mpd.experiments.spec import load_spec

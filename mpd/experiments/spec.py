@@ -257,9 +257,7 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
             raise ConfigError(path, "axes.task", f"{t!r}: {e.detail}") from None
         check_task_settings(task)  # its [inference] and [data] planner settings, before anything is built
         if task.name in files and files[task.name] != f:
-            raise ConfigError(
-                path, "axes.task", f"two task files are named {task.name!r}: {files[task.name]} and {f}"
-            )
+            raise ConfigError(path, "axes.task", f"two task files are named {task.name!r}: {files[task.name]} and {f}")
         files[task.name] = f
         alias[t] = alias[task.name] = task.name
     tables: dict[str, TaskSettings] = {}
@@ -291,8 +289,10 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
             )
     names = list(dict.fromkeys(alias[t] for t in spec.axes["task"]))
     exclude = [
-        {k: ([alias.get(x, x) for x in v] if isinstance(v, list) else alias.get(v, v)) if k == "task" else v
-         for k, v in ex.items()}
+        {
+            k: ([alias.get(x, x) for x in v] if isinstance(v, list) else alias.get(v, v)) if k == "task" else v
+            for k, v in ex.items()
+        }
         for ex in spec.exclude
     ]
     out = dataclasses.replace(spec, axes={**spec.axes, "task": names}, tasks=tables, exclude=exclude)

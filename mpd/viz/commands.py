@@ -160,9 +160,7 @@ def view(run: str, web: bool, port: int, grpc_port: int | None, only: str | None
                 if not wait_http(f"http://127.0.0.1:{port}/", proc):
                     raise click.ClickException(f"the web viewer did not start (port {port} in use? try --port)")
                 click.echo(f"{len(files)} recording(s) served; open {url}")
-                click.echo(
-                    f"from another machine: ssh -L {port}:127.0.0.1:{port} -L {grpc}:127.0.0.1:{grpc} <host>"
-                )
+                click.echo(f"from another machine: ssh -L {port}:127.0.0.1:{port} -L {grpc}:127.0.0.1:{grpc} <host>")
                 click.echo("Ctrl-C stops the viewer.")
             proc.wait()
         except KeyboardInterrupt:
