@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mpd.models.data import training_arrays
 from mpd.schema import file_sha256
 from mpd.tasks import Task, load_task
 
@@ -113,35 +114,6 @@ def training_settings(task: Task, ts):
             val_every=min(spec.val_every, ts.train_steps),
         )
     return spec
-
-
-def training_arrays(task: Task, dataset, parametrization: str):
-    """The free rows of every dataset path in a parametrization, with contexts and splits, for model training."""
-    from mpd.models.data import TrainingArrays
-    from mpd.trajectory import make_parametrization
-
-    param = make_parametrization(task, parametrization)
-    if parametrization == "bspline":
-        w = dataset.control_points
-    else:
-        w = param.fit(dataset.paths)
-    x = np.ascontiguousarray(param.free_rows(w), dtype=np.float32)
-    ctx = {"q_start": dataset.q_start.astype(np.float32)}
-    if task.ee_goal:
-        ctx["ee_pos"] = dataset.ee_pos.astype(np.float32)
-        ctx["ee_rot"] = dataset.ee_rot.astype(np.float32)
-    else:
-        ctx["q_goal"] = dataset.q_goal.astype(np.float32)
-    return TrainingArrays(
-        x=x,
-        context=ctx,
-        split=dataset.split.astype(np.int8),
-        task_name=task.name,
-        task_hash=task.file_hash,
-        dataset_hash=dataset.info["content_hash"],
-        parametrization=parametrization,
-        parametrization_settings=param.settings(),
-    )
 
 
 def needs(spec, cells) -> list[Need]:
