@@ -3,7 +3,7 @@
 re-installed only when ``pyproject.toml`` changes: a second ``nox -s demo`` starts in seconds.
 
     nox -s tests                  unit, property and end-to-end tests (slow ones: nox -s tests -- -m slow)
-    nox -s lint                   ruff
+    nox -s lint                   ruff check and ruff format --check
     nox -s demo                   the quick experiment end to end: dataset, training, every method, recording, report
     nox -s experiments -- SPEC    run an experiment spec (benchmarks/specs/NAME.toml or a path)
     nox -s report -- RUN|SPEC     regenerate a run's figures and tables from its results table
@@ -50,10 +50,15 @@ def tests(session: nox.Session) -> None:
     session.run(str(b / "python"), "-m", "pytest", *(session.posargs or ["-q"]), external=True)
 
 
+LINT_PATHS = ("mpd", "tests", "benchmarks", "noxfile.py")
+
+
 @nox.session(venv_backend="none")
 def lint(session: nox.Session) -> None:
+    """ruff: the lint rules and the formatting (the same checks as .pre-commit-config.yaml)."""
     b = _venv(session)
-    session.run(str(b / "ruff"), "check", "mpd", "tests", "benchmarks", "noxfile.py", external=True)
+    session.run(str(b / "ruff"), "check", *LINT_PATHS, external=True)
+    session.run(str(b / "ruff"), "format", "--check", *LINT_PATHS, external=True)
 
 
 @nox.session(venv_backend="none")

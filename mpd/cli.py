@@ -18,6 +18,7 @@ COMMANDS = {
     "train": ("mpd.models.commands", "train"),
     "models": ("mpd.models.commands", "models"),
     "plan": ("mpd.planners.commands", "plan"),
+    "planners": ("mpd.planners.commands", "planners"),
     "run": ("mpd.experiments.commands", "run"),
     "runs": ("mpd.experiments.commands", "runs"),
     "report": ("mpd.viz.commands", "report"),

@@ -117,6 +117,12 @@ def _convert(tp: Any, value: Any, source: Any, where: str) -> Any:
     raise TypeError(f"unsupported schema type {tp!r}")
 
 
+def check_type(tp: Any, value: Any, source: Any = None, where: str = "") -> Any:
+    """``value`` converted to the annotation ``tp`` (as :func:`from_dict` does for a field), or a
+    :class:`ConfigError` naming ``source`` and ``where``."""
+    return _convert(tp, value, source, where)
+
+
 def _type_name(tp: Any) -> str:
     if typing.get_origin(tp) is typing.Literal:
         return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))

@@ -173,7 +173,7 @@ def paired_pvalue(a, b, seed: int = SEED) -> float:
     """Two-sided p-value of "A and B are the same process" for paired values: a sign-flip permutation test of the
     mean difference (exact when every flip fits in ``N_PERMUTATIONS``). 1 when every pair is equal."""
     a, b = pairs(a, b)
-    if len(a) == 0 or np.all(a == b):
+    if len(a) < 2 or np.all(a == b):  # one pair: the exact sign-flip p-value is 1
         return 1.0
     res = stats.permutation_test(
         (a, b),
@@ -190,7 +190,7 @@ def two_sample_pvalue(a, b, seed: int = SEED) -> float:
     """Two-sided p-value of "same distribution" for unpaired values (different contexts): a permutation test of
     the difference of means."""
     a, b = finite(a), finite(b)
-    if len(a) == 0 or len(b) == 0:
+    if len(a) < 2 or len(b) < 2:  # too few contexts on a side to test anything (no power: reported as 1)
         return 1.0
     if np.all(a == a[0]) and np.all(b == a[0]):
         return 1.0

@@ -75,8 +75,10 @@ def load_dataset(
     generate_missing: bool = True,
     workers: int | None = None,
     progress: bool = True,
+    create_lock: bool = True,
 ) -> Dataset:
-    """Load a dataset by name (``datasets/NAME.toml``) or definition path.
+    """Load a dataset by name (``datasets/NAME.toml``) or definition path (``create_lock``: see
+    :func:`mpd.data.generate.generate`).
 
     Every chunk is verified against its recorded sha256 (and the lock file's, when it describes this
     identity); a missing, partial or corrupted chunk is reported and regenerated, never used.
@@ -97,7 +99,7 @@ def load_dataset(
                 f"{rd.name}: not generated yet, generating {rd.definition.n_contexts} contexts",
                 file=sys.stderr,
             )
-        generate(rd, workers=workers, progress=progress)
+        generate(rd, workers=workers, progress=progress, create_lock=create_lock)
         still = chunk_states(rd, use_lock=False)
         if still:
             raise RuntimeError(f"dataset {rd.name}: chunks {sorted(still)} could not be generated")

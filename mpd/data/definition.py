@@ -184,8 +184,11 @@ def identity_of(defn: DatasetDefinition, task: Task) -> str:
 def resolve(raw: DatasetDefinition, path: Path | None = None) -> ResolvedDefinition:
     """Fill the task-dependent defaults and compute the identity."""
     src = path if path is not None else "<definition>"
+    task_ref: str | Path = raw.task
+    if path is not None and not Path(raw.task).is_absolute() and (Path(path).parent / raw.task).is_file():
+        task_ref = Path(path).parent / raw.task  # a task file next to the definition (`mpd tasks new`)
     try:
-        task = load_task(raw.task)
+        task = load_task(task_ref)
     except ConfigError as e:
         raise ConfigError(src, "task", e.detail) from None
     p = raw.planner

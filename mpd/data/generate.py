@@ -200,12 +200,15 @@ def generate(
     progress: bool = True,
     chunks: list[int] | None = None,
     log=None,
+    create_lock: bool = True,
 ) -> dict:
     """Generate (or finish) a dataset; returns its lock record (also written next to the definition).
 
     Args:
         workers: processes (default: all cores); 1 runs in this process.
         chunks: only these chunk indices (for tests and partial runs); the lock is written when all are done.
+        create_lock: False: a lock file next to the definition is updated when it exists but never created (an
+            experiment run writes only under its run folder and the cache; `mpd data generate` creates it).
     """
     rd = name_or_path if isinstance(name_or_path, ResolvedDefinition) else load_definition(name_or_path)
     say = log or (lambda m: print(m, file=sys.stderr))
@@ -232,7 +235,7 @@ def generate(
     wall = time.perf_counter() - t0
     if chunk_states(rd, use_lock=False):
         return {}
-    lock, changed = _write_lock(rd, workers if pending else None, wall if pending else None)
+    lock, changed = _write_lock(rd, workers if pending else None, wall if pending else None, create_lock)
     if changed:
         say(
             f"{rd.name}: warning: chunks {changed} differ from the previous lock file of the same identity "
@@ -374,7 +377,9 @@ def _figures(rd: ResolvedDefinition, sides: list[dict], workers: int | None, wal
     return fig
 
 
-def _write_lock(rd: ResolvedDefinition, workers: int | None, wall: float | None) -> tuple[dict, list[int]]:
+def _write_lock(
+    rd: ResolvedDefinition, workers: int | None, wall: float | None, create: bool = True
+) -> tuple[dict, list[int]]:
     """Write the lock file (next to the definition and in the data directory); returns it and the chunks whose
     hash differs from a previous lock of the same identity."""
     d = rd.definition
@@ -410,7 +415,7 @@ def _write_lock(rd: ResolvedDefinition, workers: int | None, wall: float | None)
     # A generation that reproduces the committed lock's data leaves the committed file alone: only this machine's
     # timings and provenance would change, and a fresh clone would otherwise show a dirty tree in every run's
     # provenance. The cache-side lock.json keeps this generation's figures.
-    if not (same and prev.get("content_hash") == lock["content_hash"]):
+    if not (same and prev.get("content_hash") == lock["content_hash"]) and (create or rd.lock_path.exists()):
         rd.lock_path.parent.mkdir(parents=True, exist_ok=True)
         write_atomic(rd.lock_path, text)
     changed = [o["chunk"] for o in outs if o["chunk"] in prev_outs and prev_outs[o["chunk"]] != o["sha256"]]

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from mpd.data.eval_contexts import ContextSet
+from mpd.models.data import training_arrays
 from mpd.schema import file_sha256
 from mpd.tasks import Task, load_task
 
@@ -118,35 +119,6 @@ def training_settings(task: Task, ts):
     return spec
 
 
-def training_arrays(task: Task, dataset, parametrization: str):
-    """The free rows of every dataset path in a parametrization, with contexts and splits, for model training."""
-    from mpd.models.data import TrainingArrays
-    from mpd.trajectory import make_parametrization
-
-    param = make_parametrization(task, parametrization)
-    if parametrization == "bspline":
-        w = dataset.control_points
-    else:
-        w = param.fit(dataset.paths)
-    x = np.ascontiguousarray(param.free_rows(w), dtype=np.float32)
-    ctx = {"q_start": dataset.q_start.astype(np.float32)}
-    if task.ee_goal:
-        ctx["ee_pos"] = dataset.ee_pos.astype(np.float32)
-        ctx["ee_rot"] = dataset.ee_rot.astype(np.float32)
-    else:
-        ctx["q_goal"] = dataset.q_goal.astype(np.float32)
-    return TrainingArrays(
-        x=x,
-        context=ctx,
-        split=dataset.split.astype(np.int8),
-        task_name=task.name,
-        task_hash=task.file_hash,
-        dataset_hash=dataset.info["content_hash"],
-        parametrization=parametrization,
-        parametrization_settings=param.settings(),
-    )
-
-
 def data_range(task: Task, dataset) -> tuple[list[float], list[float]]:
     """Per-joint (lo, hi) of the free B-spline control points of the training split (the models' range)."""
     from mpd.data.dataset import SPLITS
@@ -165,7 +137,7 @@ def needs(spec, cells) -> list[Need]:
 
     out = []
     for task_name in sorted({c.p["task"] for c in cells}):
-        task = load_task(task_name)
+        task = load_task(spec.task_file(task_name))
         ts = spec.data.tasks[task_name]
         rd = load_definition(ts.dataset)
         bad = chunk_states(rd)
@@ -216,9 +188,9 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
 
     out, jobs = {}, []
     for task_name in sorted({c.p["task"] for c in cells}):
-        task = load_task(task_name)
+        task = load_task(spec.task_file(task_name))
         ts = spec.data.tasks[task_name]
-        ds = load_dataset(ts.dataset, progress=progress)
+        ds = load_dataset(ts.dataset, progress=progress, create_lock=False)  # a run writes only the cache
         n_ctx = ts.n_contexts or spec.data.n_contexts
         scenes = sorted(
             {(bool(c.p["extra_objects"]), float(c.p["rotation_deg"] or 0.0)) for c in cells if c.p["task"] == task_name}

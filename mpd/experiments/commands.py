@@ -47,13 +47,16 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
 @click.option("--report/--no-report", default=False, help="write the report and the Rerun recording at the end")
 @click.option("--mlflow", is_flag=True, help="also log the run to the local MLflow store (needs the mlflow extra)")
 @click.option(
+    "--keep-going", is_flag=True, help="with --report: exit 0 even when a figure cannot be drawn (it is listed)"
+)
+@click.option(
     "--threads",
     type=click.IntRange(min=1),
     default=None,
     help="torch threads of the planning process with --workers 1 (worker processes always use 1); set it on a busy "
     "machine: more threads than free cores makes OpenMP spin and can be 10x slower",
 )
-def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, threads):
+def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, keep_going, threads):
     """Run an experiment SPEC (a name under benchmarks/specs/ or a path)."""
     from mpd.experiments.runner import Runner
     from mpd.experiments.spec import load_spec
@@ -65,6 +68,8 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
     for k in only_d:
         if k not in AXES and not k.startswith(PLANNER_PREFIX):
             raise ConfigError("--only", k, f"unknown axis (allowed: {', '.join(AXES)}, planner.<setting>)")
+    if "task" in only_d:  # a task given by its path selects the cells of its name
+        only_d["task"] = [s.task_name(str(t)) for t in only_d["task"]]
     if threads is not None:
         import torch
 
@@ -78,9 +83,12 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
     out = runner.run()
     click.echo(f"results: {out / 'results.parquet'}")
     if report:
-        from mpd.viz.report import build_report
+        from mpd.viz.report import FigureError, build_report
 
-        rep = build_report(out)
+        try:
+            rep = build_report(out, keep_going=keep_going)
+        except FigureError as e:
+            raise click.ClickException(f"report {out / 'report' / 'index.md'}: {e} (--keep-going: exit 0)") from None
         click.echo(f"report: {rep}")
         recs = sorted((out / "recordings").glob("*.rrd")) if (out / "recordings").exists() else []
         if recs:
@@ -89,7 +97,9 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
             click.echo(
                 f"recording: {recs[0]}" + (f" (+{len(recs) - 1} more in {recs[0].parent})" if len(recs) > 1 else "")
             )
-        click.echo(f"open the recording: nox -s view -- {out.name}   (or: mpd view {out.name} --web)")
+            click.echo(f"open the recording: nox -s view -- {out.name}   (or: mpd view {out.name} --web)")
+        else:
+            click.echo("no recordings (record_contexts = 0)")
 
 
 @click.group("runs")

@@ -24,6 +24,7 @@ from mpd.experiments.spec import Cell, Spec
 from mpd.experiments.units import Unit, UnitResult, run_unit
 from mpd.paths import runs_dir
 from mpd.provenance import cpu_model, git_state, provenance
+from mpd.schema import file_sha256
 
 log = logging.getLogger(__name__)
 
@@ -172,6 +173,11 @@ class Runner:
             "spec_hash": self.spec.hash,
             "spec_path": _repo_relative(self.spec.path),
             "spec": self.spec.raw,
+            # name -> file and sha256 of every task: reports and recordings find a task given by path by its name
+            "task_files": {
+                n: {"path": _repo_relative(self.spec.task_file(n)), "sha256": file_sha256(self.spec.task_file(n))}
+                for n in sorted({c.p["task"] for c in self.cells})
+            },
             "cells": [{"key": c.key, **c.p} for c in self.cells],
             "executor": self.executor,
             "workers": self.workers,
@@ -230,6 +236,7 @@ class Runner:
                     record=j < record_n,
                     provenance=dict(prov, dataset_context_id=int(contexts.context_id[j])),
                     data_range=data_range,
+                    task_path=str(self.spec.task_file(p["task"])),
                 )
 
     def _execute(self, units: list[Unit], store: RowStore, on_result) -> None:
@@ -271,7 +278,8 @@ class Runner:
         from mpd.viz.recording import record_history, recording_path
 
         try:
-            record_history(recording_path(self.run_dir, res.row), res.row["task"], res.row, res.history)
+            task = str(self.spec.task_file(res.row["task"]))
+            record_history(recording_path(self.run_dir, res.row), task, res.row, res.history)
         except Exception as e:  # a recording must never cost the run its results
             log.warning("recording of %s context %s failed: %s", res.cell_key, res.row["context_index"], e)
 

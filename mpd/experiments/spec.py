@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from mpd.planners.settings import PRESETS, PlannerSettings
+from mpd.planners.validation import check_setting, check_task_settings
 from mpd.schema import ConfigError, from_dict, read_toml, stable_hash
 from mpd.trajectory import PARAMETRIZATIONS
 
@@ -111,12 +112,32 @@ class Cell:
 
 
 class Spec:
-    def __init__(self, data: SpecFile, path: Path | None, raw: dict):
+    def __init__(self, data: SpecFile, path: Path | None, raw: dict, task_files: dict[str, Path] | None = None):
         self.data = data
         self.path = path
         self.raw = raw
         self.name = data.name
         self.hash = stable_hash(raw, n=12)
+        # task name -> its file (the task axis holds names; a task given by path keeps its file here)
+        self.task_files: dict[str, Path] = dict(task_files or {})
+
+    def task_file(self, name: str) -> Path:
+        """The file of a task of this spec (by its name)."""
+        if name in self.task_files:
+            return self.task_files[name]
+        from mpd.tasks import resolve_task_path
+
+        return resolve_task_path(name).resolve()
+
+    def task_name(self, entry: str) -> str:
+        """The name of a task given by name or path (for ``--only task=...``)."""
+        if entry in self.task_files:
+            return entry
+        try:
+            f = _task_file(entry, self.path)
+        except ConfigError:
+            return entry
+        return next((n for n, p in self.task_files.items() if p == f), entry)
 
     def __repr__(self) -> str:
         return f"Spec({self.name!r}, {len(self.cells())} cells, hash {self.hash})"
@@ -124,7 +145,7 @@ class Spec:
     def cells(self, only: dict[str, list[Any]] | None = None) -> list[Cell]:
         """The matrix: Cartesian product of the axes, minus excludes, restricted by ``only``, with axes that a method
         does not use collapsed to None (so e.g. `sampler` does not multiply GPprior+Cost cells)."""
-        from mpd.planners import PLANNERS
+        from mpd.planners import get_planner_class
 
         axes = dict(self.data.axes)
         for k, v in DEFAULTS.items():
@@ -139,7 +160,7 @@ class Spec:
                 continue
             if only and not all(any(_match(p.get(k), v) for v in vals) for k, vals in only.items()):
                 continue
-            planner = PLANNERS[p["method"]]
+            planner = get_planner_class(p["method"])
             for a in planner.unused_axes:
                 if a in p:
                     p[a] = None
@@ -166,8 +187,7 @@ def _check_value(path, axis: str, value: Any, allowed) -> None:
 
 
 def _validate(spec: SpecFile, path) -> None:
-    from mpd.planners import PLANNERS
-    from mpd.tasks import load_task
+    from mpd.planners import get_planner_class
 
     settings_fields = {f.name: f for f in dataclasses.fields(PlannerSettings)}
     for axis, values in spec.axes.items():
@@ -179,13 +199,20 @@ def _validate(spec: SpecFile, path) -> None:
                 raise ConfigError(
                     path, f"axes.{axis}", f"unknown planner setting (allowed: {', '.join(settings_fields)})"
                 )
+            for v in values:
+                check_setting(name, v, path, f"axes.{axis}")
             continue
         if axis not in AXES:
             allowed = ", ".join([*AXES, PLANNER_PREFIX + "<setting>"])
             raise ConfigError(path, f"axes.{axis}", f"unknown axis (allowed: {allowed})")
         for v in values:
-            if axis == "method" and v not in PLANNERS:
-                raise ConfigError(path, "axes.method", f"unknown method {v!r} (known: {', '.join(PLANNERS)})")
+            if axis == "method":
+                if not isinstance(v, str):
+                    raise ConfigError(path, "axes.method", f"{v!r} is not a planner name")
+                try:
+                    get_planner_class(v)  # a built-in, an installed entry point or package.module:Class
+                except ValueError as e:
+                    raise ConfigError(path, "axes.method", str(e)) from None
             if axis in ("n_samples", "seed") and (
                 not isinstance(v, int) or isinstance(v, bool) or (axis == "n_samples" and v < 1)
             ):
@@ -200,23 +227,83 @@ def _validate(spec: SpecFile, path) -> None:
     for k in ("task", "method"):
         if k not in spec.axes:
             raise ConfigError(path, f"axes.{k}", "missing required axis")
-    for t in spec.axes["task"]:
-        try:
-            load_task(t)
-        except ConfigError as e:
-            raise ConfigError(path, "axes.task", f"{t!r}: {e.detail}") from None
-        if t in spec.tasks and spec.tasks[t].contexts not in ("held-out", "sampled"):
-            raise ConfigError(
-                path, f"tasks.{t}.contexts", f"{spec.tasks[t].contexts!r} is not one of: 'held-out', 'sampled'"
-            )
-        if t not in spec.tasks:
-            raise ConfigError(
-                path, f"tasks.{t}", 'every task of axes.task needs a [tasks."NAME"] table with its dataset'
-            )
     for i, ex in enumerate(spec.exclude):
         for k in ex:
             if k not in spec.axes and k not in DEFAULTS and k not in ("n_samples", "seed"):
                 raise ConfigError(path, f"exclude[{i}].{k}", "not an axis of this spec")
+
+
+def _task_file(entry: str, spec_path: Path | None) -> Path:
+    """A task entry of a spec (a bundled task's name or a path) as a file; a relative path is looked up next to the
+    spec first, then from the working directory."""
+    from mpd.tasks import resolve_task_path
+
+    p = Path(entry)
+    if spec_path is not None and not p.is_absolute() and (Path(spec_path).parent / p).is_file():
+        return (Path(spec_path).parent / p).resolve()
+    return resolve_task_path(entry).resolve()
+
+
+def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
+    """Every task has one identity, the ``name`` of its file, whether the spec gives it by name or by path: the
+    task axis, ``[[exclude]]`` and the ``[tasks."..."]`` tables (keyed by either) are rewritten to names. Returns
+    the rewritten spec and the file of each task name."""
+    from mpd.tasks import load_task
+
+    files: dict[str, Path] = {}
+    alias: dict[str, str] = {}  # every way the spec names a task -> the task's name
+    for t in spec.axes["task"]:
+        if not isinstance(t, str):
+            raise ConfigError(path, "axes.task", f"{t!r} is not a task name or a path to a task file")
+        try:
+            f = _task_file(t, path)
+            task = load_task(f)
+        except ConfigError as e:
+            raise ConfigError(path, "axes.task", f"{t!r}: {e.detail}") from None
+        check_task_settings(task)  # its [inference] and [data] planner settings, before anything is built
+        if task.name in files and files[task.name] != f:
+            raise ConfigError(path, "axes.task", f"two task files are named {task.name!r}: {files[task.name]} and {f}")
+        files[task.name] = f
+        alias[t] = alias[task.name] = task.name
+    tables: dict[str, TaskSettings] = {}
+    keys: dict[str, str] = {}
+    for key, ts in spec.tasks.items():
+        name = alias.get(key)
+        if name is None:  # a table keyed by another spelling of a path (relative vs absolute)
+            try:
+                name = next((n for n, f in files.items() if _task_file(key, path) == f), None)
+            except ConfigError:
+                name = None
+        if name is None:
+            continue  # a table of a task this spec does not run (kept for --only-style edits of the axis)
+        if name in tables:
+            raise ConfigError(
+                path, f"tasks.{key}", f"task {name!r} has two tables, [tasks.{keys[name]!r}] and [tasks.{key!r}]"
+            )
+        if ts.contexts not in ("held-out", "sampled"):
+            raise ConfigError(path, f"tasks.{key}.contexts", f"{ts.contexts!r} is not one of: 'held-out', 'sampled'")
+        near = Path(path).parent / ts.dataset if path is not None else None
+        if near is not None and not Path(ts.dataset).is_absolute() and near.is_file():
+            ts = dataclasses.replace(ts, dataset=str(near.resolve()))  # a definition next to the spec
+        tables[name], keys[name] = ts, key
+    for t in spec.axes["task"]:
+        if alias[t] not in tables:
+            raise ConfigError(
+                path,
+                f"tasks.{alias[t]}",
+                f'every task of axes.task needs a [tasks."NAME"] table with its dataset (NAME: {alias[t]!r} or '
+                "the path given in axes.task)",
+            )
+    names = list(dict.fromkeys(alias[t] for t in spec.axes["task"]))
+    exclude = [
+        {
+            k: ([alias.get(x, x) for x in v] if isinstance(v, list) else alias.get(v, v)) if k == "task" else v
+            for k, v in ex.items()
+        }
+        for ex in spec.exclude
+    ]
+    out = dataclasses.replace(spec, axes={**spec.axes, "task": names}, tasks=tables, exclude=exclude)
+    return out, files
 
 
 def load_spec(name_or_path: str | Path) -> Spec:
@@ -230,17 +317,18 @@ def load_spec(name_or_path: str | Path) -> Spec:
     raw = read_toml(p)
     data = from_dict(SpecFile, raw, source=p)
     _validate(data, p)
-    spec = Spec(data, p, raw)
+    data, task_files = _resolve_tasks(data, p)
+    spec = Spec(data, p, raw, task_files)
     _check_combinations(spec, p)
     return spec
 
 
 def _check_combinations(spec: Spec, path) -> None:
-    from mpd.planners import PLANNERS
+    from mpd.planners import get_planner_class
 
     for cell in spec.cells():
         p = cell.p
-        planner = PLANNERS[p["method"]]
+        planner = get_planner_class(p["method"])
         problem = planner.unsupported(p)
         if problem:
             raise ConfigError(

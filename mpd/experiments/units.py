@@ -29,6 +29,7 @@ class Unit:
     provenance: dict[str, Any] = field(default_factory=dict)
     # (lo, hi) per joint: the normalized space of a planner without a model (the dataset's range)
     data_range: tuple[list[float], list[float]] | None = None
+    task_path: str | None = None  # the task's file (a task given by path is not found by its name)
 
 
 @dataclass
@@ -47,7 +48,7 @@ def _planner(unit: Unit):
     if key not in _CACHE:
         _CACHE.clear()  # one cell at a time per process: models and SDF grids can be large
         p = unit.params
-        task = load_task(p["task"])
+        task = load_task(unit.task_path or p["task"])
         model = None
         if unit.model_path:
             model = load_model(

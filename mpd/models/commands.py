@@ -35,7 +35,7 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
     import torch
 
     from mpd.data.dataset import load_dataset
-    from mpd.experiments.artifacts import training_arrays
+    from mpd.models.data import training_arrays
     from mpd.models.train import train_model
     from mpd.tasks import load_task
 

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mpd.models.context import UNNORMALIZED_KEYS, context_kind_of, context_shapes
 from mpd.models.normalizer import Normalizer
 from mpd.schema import canonical_json
+
+if TYPE_CHECKING:
+    from mpd.tasks import Task
 
 SPLIT_TRAIN, SPLIT_VAL, SPLIT_TEST = 0, 1, 2
 SPLIT_NAMES = {SPLIT_TRAIN: "train", SPLIT_VAL: "val", SPLIT_TEST: "test"}
@@ -111,3 +114,31 @@ def fit_normalizers(arrays: TrainingArrays) -> tuple[Normalizer, dict[str, Norma
     x_norm = Normalizer.fit(arrays.x[train])
     ctx = {k: Normalizer.fit(v[train]) for k, v in arrays.context.items() if k not in UNNORMALIZED_KEYS}
     return x_norm, ctx
+
+
+def training_arrays(task: Task, dataset, parametrization: str):
+    """The free rows of every dataset path in a parametrization, with contexts and splits, for model training."""
+    from mpd.trajectory import make_parametrization
+
+    param = make_parametrization(task, parametrization)
+    if parametrization == "bspline":
+        w = dataset.control_points
+    else:
+        w = param.fit(dataset.paths)
+    x = np.ascontiguousarray(param.free_rows(w), dtype=np.float32)
+    ctx = {"q_start": dataset.q_start.astype(np.float32)}
+    if task.ee_goal:
+        ctx["ee_pos"] = dataset.ee_pos.astype(np.float32)
+        ctx["ee_rot"] = dataset.ee_rot.astype(np.float32)
+    else:
+        ctx["q_goal"] = dataset.q_goal.astype(np.float32)
+    return TrainingArrays(
+        x=x,
+        context=ctx,
+        split=dataset.split.astype(np.int8),
+        task_name=task.name,
+        task_hash=task.file_hash,
+        dataset_hash=dataset.info["content_hash"],
+        parametrization=parametrization,
+        parametrization_settings=param.settings(),
+    )

@@ -4,7 +4,9 @@
     result = planner.plan(context, n_samples=100, seed=0)
 
 Adding a planner: one file with a :class:`Planner` subclass decorated with ``@register``, plus its module name in
-``_MODULES`` below.
+``_MODULES`` below. A planner outside the repository is a :class:`Planner` subclass in the user's package, named
+in a spec or on the command line as ``package.module:Class`` or registered through the ``mpd.planners`` entry point
+group; ``mpd planners check NAME`` runs the conformance checks (:mod:`mpd.planners.conformance`) on it.
 """
 
 from __future__ import annotations
@@ -22,10 +24,52 @@ for _m in _MODULES:
 METHOD_ORDER = ("gp-cost", "cvae", "cvae-cost", "dprior", "dprior-cost", "mpd", "rrtconnect-cost")
 
 
+ENTRY_POINT_GROUP = "mpd.planners"
+
+
+def _entry_points() -> dict:
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def planner_names() -> list[str]:
+    """The built-in planners, then those installed through the ``mpd.planners`` entry point group."""
+    return [*PLANNERS, *sorted(set(_entry_points()) - set(PLANNERS))]
+
+
 def get_planner_class(name: str) -> type[Planner]:
-    if name not in PLANNERS:
-        raise ValueError(f"unknown planner {name!r} (known: {', '.join(PLANNERS)})")
-    return PLANNERS[name]
+    """A planner class by its registry name, by the name of an ``mpd.planners`` entry point of an installed package,
+    or as ``package.module:Class`` (a class outside the repository, importable from ``sys.path``)."""
+    if name in PLANNERS:
+        return PLANNERS[name]
+    where = None
+    if ":" in name:
+        module, _, attr = name.partition(":")
+        where = f"{module}:{attr}"
+        try:
+            obj = importlib.import_module(module)
+        except Exception as e:  # noqa: BLE001 - any import failure of a user's module is reported in one line
+            raise ValueError(f"planner {name!r}: cannot import {module!r} ({type(e).__name__}: {e})") from None
+        for part in attr.split("."):
+            obj = getattr(obj, part, None)
+            if obj is None:
+                raise ValueError(f"planner {name!r}: module {module!r} has no {attr!r}") from None
+    else:
+        eps = _entry_points()
+        if name not in eps:
+            known = ", ".join(planner_names())
+            raise ValueError(f"unknown planner {name!r} (known: {known}; or package.module:Class)")
+        where = f"entry point {ENTRY_POINT_GROUP}:{name} = {eps[name].value}"
+        try:
+            obj = eps[name].load()
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"planner {name!r}: cannot load {where} ({type(e).__name__}: {e})") from None
+    if not (isinstance(obj, type) and issubclass(obj, Planner)):
+        raise ValueError(f"planner {name!r}: {where} is not a subclass of mpd.planners.Planner")
+    if obj is Planner or not getattr(obj, "plan", None) or obj.plan is Planner.plan:
+        raise ValueError(f"planner {name!r}: {where} does not implement plan(ctx, n_samples, seed, record_history)")
+    return obj
 
 
 def make_planner(
@@ -95,8 +139,10 @@ __all__ = [
     "Planner",
     "PlannerSettings",
     "Timer",
+    "ENTRY_POINT_GROUP",
     "get_planner_class",
     "make_planner",
+    "planner_names",
     "planner_settings",
     "register",
 ]

@@ -130,15 +130,12 @@ def plan(
         raise ConfigError("--planner", "", str(e)) from None
     if n_samples < 1 or n_contexts < 1:
         raise ConfigError("--n-samples/--n-contexts", "", "must be positive")
-    ov = {}
-    for item in overrides:
-        k, _, v = item.partition("=")
-        try:
-            ov[k] = json.loads(v)
-        except json.JSONDecodeError:
-            ov[k] = v
+    from mpd.planners.validation import check_task_settings, parse_assignments
+
+    ov = parse_assignments(overrides, "--set")  # type and range of every setting, before a model is loaded
     if sampler != "ddim":
         ov["sampler"] = sampler
+    check_task_settings(task)
     qs, qg = _vector(start, "start", task.dof), _vector(goal, "goal", task.dof)
     if (qs is None) != (qg is None):
         raise ConfigError("--start/--goal", "", "give both a start and a goal, or neither")
@@ -315,3 +312,37 @@ def _figures(task, planner, ctx, res, val, out: Path, extra_objects, rotation, c
             steps.append((f"{h.label} {h.step}", q.numpy(), checker.trajectories(q).valid.numpy()))
         denoising_figure(task, env, steps, out=out / "denoising.png")
     torch.cuda.empty_cache() if torch.cuda.is_available() else None
+
+
+@click.group("planners")
+def planners():
+    """List the planners and check a planner (your own too) against the interface."""
+
+
+@planners.command("list")
+def planners_list():
+    """The built-in planners and those installed through the `mpd.planners` entry point group."""
+    from mpd.planners import get_planner_class, planner_names
+
+    for name in planner_names():
+        try:
+            cls = get_planner_class(name)
+            click.echo(f"{name:18s} {cls.label}  (model: {cls.model_kind or 'none'})")
+        except ValueError as e:
+            click.echo(f"{name:18s} (broken: {e})")
+
+
+@planners.command("check")
+@click.argument("name")
+def planners_check(name):
+    """Run the conformance checks on planner NAME (a name, an entry point, or package.module:Class): output shapes,
+    boundary conditions, determinism with a seed, timings. Exit 1 with one line on the first failure."""
+    from mpd.planners.conformance import PlannerCheckError, check_planner
+
+    try:
+        rep = check_planner(name)
+    except PlannerCheckError as e:
+        raise click.ClickException(str(e)) from None
+    for c in rep.checks:
+        click.echo(f"ok  {c}")
+    click.echo(f"planner {name!r} ({rep.label}) passes the conformance checks")

@@ -81,11 +81,9 @@ class PlannerSettings:
         return math.ceil(round(self.guide_fraction * n_steps, 9))
 
     def replace(self, **kw) -> PlannerSettings:
-        unknown = set(kw) - {f.name for f in dataclasses.fields(self)}
-        if unknown:
-            allowed = ", ".join(f.name for f in dataclasses.fields(self))
-            raise ValueError(f"unknown planner setting(s) {', '.join(sorted(unknown))} (allowed: {allowed})")
-        return dataclasses.replace(self, **kw)
+        from mpd.planners.validation import check_settings  # type and range of every field (one-line errors)
+
+        return dataclasses.replace(self, **check_settings(kw))
 
 
 PAPER_OVERRIDES = {

@@ -139,3 +139,84 @@ def show_cmd(task: str, out: Path, extra_objects: bool, rotation_deg: float, see
         raise click.ClickException(str(e)) from None
     task_figure(t, t.env(extra_objects, rotation_deg), q, out=out)
     click.echo(f"wrote {out} (q = {[round(float(v), 4) for v in q]})")
+
+
+_TASK_HEADER = """\
+# {name}: a task of your own, written by `mpd tasks new {name} --like {base}` (a copy of {base}).
+# What to edit (every field: docs/OWN_TASK.md and the bundled tasks in mpd/tasks/data/):
+#   [environment]        workspace, obstacles ([[environment.obstacles]]: type "sphere" with centre and radius, or
+#                        "box" with centre and size) and the extra objects of the unseen scene
+#   [robot].name         the robot (RobotPointMass2D, RobotPlanar2Link, RobotPlanar4Link, RobotPanda)
+#   [trajectory]         duration, control points; [costs.weights]; [training.<profile>] (steps, batch size)
+# Check it:  mpd tasks check {file}     Draw it:  mpd tasks show {file} --out {name}.png
+# The name below is the task's identity in every result, figure and recording: keep it unique.
+"""
+
+_DATA_TEMPLATE = """\
+# {data}: the training data of {name}, written by `mpd tasks new` (RRTConnect paths in the training scene,
+# fitted with B-splines). Generate it: mpd data generate {data_file}   (`mpd run` generates it when missing).
+# Every field: datasets/README.md; fields left out take the task's values.
+name = "{data}"
+task = "{file}"  # a path relative to this file, or a bundled task's name
+description = "training paths of {name}"
+n_contexts = {n_contexts}  # start/goal problems; 10000 for a paper-size dataset
+seed = 0
+chunk_size = {chunk}
+
+[checker]
+kind = "spheres"
+"""
+
+
+@tasks.command("new")
+@click.argument("name")
+@click.option("--like", "base", default="EnvSimple2D-RobotPointMass2D", show_default=True, help="task to copy")
+@click.option(
+    "--out",
+    "out_dir",
+    default=".",
+    show_default=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="folder of the new files",
+)
+@click.option("--n-contexts", default=500, show_default=True, type=click.IntRange(min=1), help="dataset size")
+@click.option("--force", is_flag=True, help="overwrite existing files")
+@_config_errors
+def new_cmd(name: str, base: str, out_dir: Path, n_contexts: int, force: bool) -> None:
+    """Write a commented task file NAME.toml (a copy of --like) and its dataset definition NAME-data.toml."""
+    import tomllib
+
+    from mpd.schema import from_dict
+    from mpd.tasks import load_task
+    from mpd.tasks.spec import TaskSpec
+
+    src = load_task(base)
+    task_file, data_file = out_dir / f"{name}.toml", out_dir / f"{name}-data.toml"
+    for f in (task_file, data_file):
+        if f.exists() and not force:
+            raise ConfigError(f, "", "exists already (--force overwrites it)")
+    lines = src.path.read_text().splitlines(keepends=True)
+    body = lines[next(i for i, line in enumerate(lines) if not line.startswith("#")) :]  # the base's header out
+    text = "".join(body)
+    old = f'name = "{src.name}"'
+    if old not in text:
+        raise ConfigError(src.path, "name", f"expected a line {old!r} to rename")
+    text = _TASK_HEADER.format(name=name, base=src.name, file=task_file.name) + text.replace(
+        old, f'name = "{name}"', 1
+    )
+    if f'description = "{src.spec.description}"' in text:
+        text = text.replace(f'description = "{src.spec.description}"', f'description = "{name} (from {src.name})"')
+    from_dict(TaskSpec, tomllib.loads(text), source=task_file)  # e.g. the new name must be a valid one
+    data = _DATA_TEMPLATE.format(
+        data=f"{name}-data",
+        name=name,
+        file=task_file.name,
+        data_file=data_file.name,
+        n_contexts=n_contexts,
+        chunk=max(1, min(50, n_contexts)),
+    )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    task_file.write_text(text)
+    data_file.write_text(data)
+    click.echo(f"wrote {task_file} (a copy of {src.name}) and {data_file}")
+    click.echo(f"next: mpd tasks check {task_file}  and  mpd data generate {data_file}")

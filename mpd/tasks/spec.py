@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
 from mpd.schema import ConfigError
+
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
 
 @dataclass(frozen=True)
@@ -196,5 +199,10 @@ class TaskSpec:
     def validate(self) -> None:
         if self.schema_version != 1:
             raise ValueError(f"schema_version {self.schema_version} is not supported (this mpd reads 1)")
+        if not _NAME.fullmatch(self.name):
+            # the name is the task's identity in results, figure and recording file names and cache folders
+            raise ValueError(
+                f"name {self.name!r}: use letters, digits, '-', '_' and '.' only, starting with a letter or digit"
+            )
         if self.context.kind == "goal_ee_pose" and self.costs.weights.ee_pose <= 0:
             raise ValueError("costs.weights.ee_pose must be positive for an end-effector-goal task")

@@ -35,14 +35,20 @@ def _resolve(run: str) -> Path:
     default=None,
     help="the run to compare this one with in reproducibility.md (default: the committed reports/<spec>/)",
 )
-def report(run: str, no_recordings: bool, force: bool, reference: str | None) -> None:
+@click.option("--keep-going", is_flag=True, help="exit 0 even when a figure cannot be drawn (it is listed)")
+def report(run: str, no_recordings: bool, force: bool, reference: str | None, keep_going: bool) -> None:
     """Rebuild the recordings and the report of RUN (a run folder, a run id, `latest`, or a spec name: its latest
-    run), and print where its index.md is."""
-    from mpd.viz.report import build_report
+    run), and print where its index.md is. A figure that cannot be drawn fails the command (exit 1)."""
+    from mpd.viz.report import FigureError, build_report
 
     run_dir = _resolve(run)
     ref = _resolve(reference) if reference else "auto"
-    index = build_report(run_dir, recordings=not no_recordings, force_recordings=force, reference=ref)
+    try:
+        index = build_report(
+            run_dir, recordings=not no_recordings, force_recordings=force, reference=ref, keep_going=keep_going
+        )
+    except FigureError as e:
+        raise click.ClickException(f"report {run_dir / 'report' / 'index.md'}: {e} (--keep-going: exit 0)") from None
     recs = sorted((run_dir / "recordings").glob("*.rrd")) if (run_dir / "recordings").exists() else []
     click.echo(f"report: {index}")
     if recs:
@@ -149,17 +155,50 @@ def view(run: str, web: bool, port: int, grpc_port: int | None, only: str | None
         raise click.ClickException(f"{run_dir}: no recordings (the run recorded no context: record_contexts = 0?)")
     grpc = grpc_port or free_port(GRPC_PORT)
     cmd = viewer_command(files, web, port, grpc)
-    proc = start_viewer(cmd)
+    code = 0
+    # the viewer runs in its own session (a terminal's signals do not reach it), so every way out of this process
+    # must stop it: Ctrl-C, SIGTERM, SIGHUP (a closed terminal) and exceptions all pass through `finally`
+    previous = {signal.SIGINT: signal.getsignal(signal.SIGINT)}
+    previous.update({s: signal.signal(s, _raise_signal) for s in STOP_SIGNALS})
     try:
-        if web:
-            url = viewer_url(port, grpc)
-            if not wait_http(f"http://127.0.0.1:{port}/", proc):
-                raise click.ClickException(f"the web viewer did not start (port {port} in use? try --port)")
-            click.echo(f"{len(files)} recording(s) served; open {url}")
-            click.echo(f"from another machine: ssh -L {port}:127.0.0.1:{port} -L {grpc}:127.0.0.1:{grpc} <host>")
-            click.echo("Ctrl-C stops the viewer.")
-        proc.wait()
-    except KeyboardInterrupt:
-        click.echo("stopping the viewer", err=True)
+        proc = start_viewer(cmd)
+        try:
+            if web:
+                url = viewer_url(port, grpc)
+                if not wait_http(f"http://127.0.0.1:{port}/", proc):
+                    raise click.ClickException(f"the web viewer did not start (port {port} in use? try --port)")
+                click.echo(f"{len(files)} recording(s) served; open {url}")
+                click.echo(f"from another machine: ssh -L {port}:127.0.0.1:{port} -L {grpc}:127.0.0.1:{grpc} <host>")
+                click.echo("Ctrl-C stops the viewer.")
+            proc.wait()
+        except KeyboardInterrupt:
+            click.echo("stopping the viewer", err=True)
+            code = 128 + signal.SIGINT
+        except Signalled as e:
+            click.echo(f"stopping the viewer ({signal.Signals(e.signum).name})", err=True)
+            code = 128 + e.signum
+        finally:
+            # a second signal must not cut the clean-up short
+            for s in (*STOP_SIGNALS, signal.SIGINT):
+                signal.signal(s, signal.SIG_IGN)
+            stop_viewer(proc)
     finally:
-        stop_viewer(proc)
+        for s, h in previous.items():
+            signal.signal(s, h)
+    if code:
+        sys.exit(code)
+
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+class Signalled(Exception):
+    """SIGTERM or SIGHUP, turned into an exception so that clean-up code runs."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_signal(signum, frame):
+    raise Signalled(signum)

@@ -414,6 +414,11 @@ def record_history(
 
 
 # ------------------------------------------------------------------------------------------------- runs
+def _component(value: Any) -> str:
+    """A value as one file-name component (no separators: a recording never lands outside ``recordings/``)."""
+    return "".join(ch if ch.isalnum() or ch in "._-" else "_" for ch in str(value)).lstrip(".") or "_"
+
+
 def recording_name(params: Mapping[str, Any], context_index: int, cells: Sequence[Mapping[str, Any]] = ()) -> str:
     """``<task>-<method>-<train|extra>[-rot<deg>][-<axis values>]-ctx<i>.rrd``. ``cells`` (the run's manifest
     cells) decide which further axes must be named: those that differ between cells of the same task, method
@@ -422,7 +427,8 @@ def recording_name(params: Mapping[str, Any], context_index: int, cells: Sequenc
     def base(p) -> tuple:
         return (p.get("task"), p.get("method"), bool(p.get("extra_objects")), float(p.get("rotation_deg") or 0))
 
-    parts = [str(params.get("task")), str(params.get("method")), "extra" if params.get("extra_objects") else "train"]
+    parts = [_component(params.get("task")), _component(params.get("method"))]
+    parts.append("extra" if params.get("extra_objects") else "train")
     rot = float(params.get("rotation_deg") or 0.0)
     if rot:
         parts.append(f"rot{rot:g}")
@@ -467,6 +473,21 @@ def load_history(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any
     return arrays, params
 
 
+def run_task(run_dir: str | Path, name: str):
+    """A task of a run by its name: the file recorded in the manifest (a task the spec gave by path), else the
+    bundled task of that name."""
+    from mpd.paths import REPO_ROOT
+    from mpd.tasks import load_task
+
+    man = Path(run_dir) / "manifest.json"
+    files = json.loads(man.read_text()).get("task_files", {}) if man.exists() else {}
+    entry = files.get(name)
+    if entry is None:
+        return load_task(name)
+    path = Path(entry["path"])
+    return load_task(path if path.is_absolute() else Path(REPO_ROOT) / path)
+
+
 def _params_from_run(run_dir: Path, cell_key: str) -> dict[str, Any]:
     """Parameters of a cell from the manifest (older histories do not carry them)."""
     man = json.loads((run_dir / "manifest.json").read_text())
@@ -494,7 +515,7 @@ def record_run(run_dir: str | Path, force: bool = False, histories: Iterable[Pat
             raise ValueError(f"{f}: no parameters for cell {params.get('cell_key')} in the history nor the manifest")
         target = recording_path(run_dir, params, cells)
         if force or not target.exists() or target.stat().st_mtime < f.stat().st_mtime:
-            record_history(target, params["task"], params, arrays)
+            record_history(target, run_task(run_dir, params["task"]), params, arrays)
         out.append(target)
     return sorted(out)
 
@@ -508,4 +529,5 @@ __all__ = [
     "record_run",
     "recording_name",
     "recording_path",
+    "run_task",
 ]

@@ -173,14 +173,21 @@ def _save(fig, out: Path, formats: tuple[str, ...] = ("png", "pdf"), dpi: int = 
             os.replace(tmp, path)
 
 
+FAILED = "failed: "  # the reason of an Entry that could not be drawn starts so
+
+
+class FigureError(RuntimeError):
+    """A report figure could not be drawn (the report was written without it)."""
+
+
 def table_figures(d: pd.DataFrame, fig_dir: Path, cap: str, **save) -> list[Entry]:
     entries = []
     for kind in FIGURES:
         try:
             fig = kind.make(d)
-        except Exception as e:  # one broken figure must not cost the whole report
-            log.exception("figure %s failed", kind.name)
-            entries.append(Entry(kind.name, kind.title, f"failed: {type(e).__name__}: {e}"))
+        except Exception as e:  # one broken figure must not cost the whole report: noted, raised at the end
+            log.debug("figure %s failed", kind.name, exc_info=True)
+            entries.append(Entry(kind.name, kind.title, f"{FAILED}{type(e).__name__}: {e}"))
             continue
         if fig is None:
             entries.append(Entry(kind.name, kind.title, f"not in this run (needs {kind.needs})"))
@@ -243,8 +250,8 @@ def _step_choice(labels: Sequence[str], k: int = 5) -> list[int]:
 
 def history_figures(run_dir: Path, d: pd.DataFrame, fig_dir: Path, cap: str, **save) -> list[Entry]:
     """The denoising figure and the trajectory figure of one recorded context per task and scene."""
-    from mpd.tasks import load_task
     from mpd.viz import scene as sc
+    from mpd.viz.recording import run_task
 
     entries = []
     for task_name, scene, method, f, params in _pick_histories(run_dir, d):
@@ -252,9 +259,9 @@ def history_figures(run_dir: Path, d: pd.DataFrame, fig_dir: Path, cap: str, **s
         stem = f"{task_name}-{'extra' if scene == EXTRA else 'train'}"
         what = f"{short_task(task_name)}, {scene}, {method_label(method)} (context {params.get('context_index', 0)})"
         try:
-            task = load_task(task_name)
+            task = run_task(run_dir, task_name)
         except Exception as e:
-            entries.append(Entry(f"denoising-{stem}", f"Denoising: {what}", f"task not loadable: {e}"))
+            entries.append(Entry(f"denoising-{stem}", f"Denoising: {what}", f"{FAILED}task not loadable: {e}"))
             continue
         env = task.env(scene == EXTRA, 0.0)
         if "steps_q" in arrays and len(arrays["steps_q"]):
@@ -329,8 +336,12 @@ def build_report(
     formats: tuple[str, ...] = ("png", "pdf"),
     dpi: int = 200,
     reference: str | Path | None = "auto",
+    keep_going: bool = False,
 ) -> Path:
     """(Re)build ``run_dir/report/`` and, with ``recordings``, ``run_dir/recordings/``; returns ``index.md``.
+
+    A figure that cannot be drawn is listed under "Not produced" and, unless ``keep_going``, raises
+    :class:`FigureError` (naming the figure and the reason) once the rest of the report is written.
 
     ``formats`` and ``dpi``: of the figure files (the Markdown links the PNG and, when written, the PDF).
     ``reference``: the run this one is compared with in ``reproducibility.md``; ``"auto"``: the committed run of
@@ -425,7 +436,11 @@ def build_report(
     lines += _recordings_md(run_dir, recs, info)
     index = out / "index.md"
     _write(index, "\n".join(lines).rstrip() + "\n")
+    failed = [e for e in entries if e.skipped is not None and e.skipped.startswith(FAILED)]
+    if failed and not keep_going:
+        more = f" (and {len(failed) - 1} more, listed in {index})" if len(failed) > 1 else ""
+        raise FigureError(f"figure {failed[0].name!r} {failed[0].skipped}{more}")
     return index
 
 
-__all__ = ["build_report", "caption", "run_info"]
+__all__ = ["FigureError", "build_report", "caption", "run_info"]

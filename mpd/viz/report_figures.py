@@ -100,6 +100,13 @@ def beeswarm(y: np.ndarray, diameter: float, max_half_width: float) -> np.ndarra
     return x
 
 
+def success_yerr(mean: float, lo: float, hi: float) -> list[list[float]]:
+    """Matplotlib's asymmetric error bar (in %) of a rate and its interval: never negative (at a rate of 0 or 1
+    the Wilson bound equals the rate up to rounding, which can land on the wrong side), 0 where undefined."""
+    below, above = 100 * (mean - lo), 100 * (hi - mean)
+    return [[max(float(np.nan_to_num(below)), 0.0)], [max(float(np.nan_to_num(above)), 0.0)]]
+
+
 def _swarm_panel(ax, g: pd.DataFrame, col: str, scale: float, methods: list[str], ylim, size_in) -> None:
     """One panel of Fig. 6: success as bars with Wilson's 95% interval, every other metric as a swarm per method
     with the 95% bootstrap interval of its mean; the cross at the mean. ``ylim`` fixes the y range first, so the
@@ -119,7 +126,7 @@ def _swarm_panel(ax, g: pd.DataFrame, col: str, scale: float, methods: list[str]
             ax.errorbar(
                 i,
                 100 * v.mean(),
-                yerr=[[100 * abs(v.mean() - lo)], [100 * abs(hi - v.mean())]],
+                yerr=success_yerr(v.mean(), lo, hi),
                 color="0.2",
                 lw=0.8,
                 capsize=1.5,
