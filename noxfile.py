@@ -72,9 +72,7 @@ def demo(session: nox.Session) -> None:
 def experiments(session: nox.Session) -> None:
     """Run an experiment spec: nox -s experiments -- SPEC [mpd run options]."""
     if not session.posargs:
-        session.error(
-            "usage: nox -s experiments -- SPEC [--only KEY=VALUE ...] [--executor ray] [--workers N]"
-        )
+        session.error("usage: nox -s experiments -- SPEC [--only KEY=VALUE ...] [--executor ray] [--workers N]")
     b = _venv(session)
     session.run(str(b / "mpd"), "run", *session.posargs, external=True)
 

@@ -70,9 +70,7 @@ def test_bench_costs_panda_parts(benchmark, problem, part):
     dense = param.dense(free, q_start, q_goal)
     if part == "fk":
         q = dense.q.reshape(-1, task.dof)
-        benchmark.pedantic(
-            lambda: task.robot.kinematics(q, spheres=True, ee=False), rounds=40, warmup_rounds=3
-        )
+        benchmark.pedantic(lambda: task.robot.kinematics(q, spheres=True, ee=False), rounds=40, warmup_rounds=3)
         return
     inp = CostInput(dense, task, env, ee_goal, "nearest")
     inp.kinematics()  # shared by all costs of an evaluation; timed above

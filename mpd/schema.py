@@ -92,10 +92,7 @@ def _convert(tp: Any, value: Any, source: Any, where: str) -> Any:
         if not isinstance(value, dict):
             raise ConfigError(source, where, f"expected a table, got {_describe(value)}")
         kt, vt = args if args else (Any, Any)
-        return {
-            _convert(kt, k, source, where): _convert(vt, v, source, _fmt(where, str(k)))
-            for k, v in value.items()
-        }
+        return {_convert(kt, k, source, where): _convert(vt, v, source, _fmt(where, str(k))) for k, v in value.items()}
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value, source=source, where=where)
     if tp is float:

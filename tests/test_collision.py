@@ -110,9 +110,10 @@ def test_arm_limits(tmp_path):
     assert v.valid.tolist() == [True, True, True, True, False, True]
     # within reach of the arm: a ball at (0.4, 0) hit by the stretched arm
     t2 = _task(tmp_path, "RobotPlanar2Link", centre=(0.45, 0.0))
-    assert CollisionChecker(t2).configs(
-        torch.tensor([[0.0, 0.0], [math.pi / 2, 0.0]], dtype=F64)
-    ).valid.tolist() == [False, True]
+    assert CollisionChecker(t2).configs(torch.tensor([[0.0, 0.0], [math.pi / 2, 0.0]], dtype=F64)).valid.tolist() == [
+        False,
+        True,
+    ]
 
 
 def _brute_force_self(robot, q: torch.Tensor) -> torch.Tensor:
@@ -201,6 +202,6 @@ def test_authors_grid_lookup_reads_the_node_they_read():
     # lower quarter, mostly the next one in the upper quarter
     near = np.clip(np.round((x - lo) / ((hi - lo) / (n - 1))).astype(int), 0, n - 1)
     off = (idx - near)[:200, 0]
-    frac = ((x[:200, 0] - lo[0]) / (hi[0] - lo[0]))
+    frac = (x[:200, 0] - lo[0]) / (hi[0] - lo[0])
     assert set(np.unique(off)) <= {0, 1}
     assert off[frac < 0.25].mean() < 0.5 < off[frac > 0.75].mean()

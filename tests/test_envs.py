@@ -46,9 +46,7 @@ def _sphere_surface(c, r, n: int) -> np.ndarray:
         return np.asarray(c) + r * np.stack([np.cos(a), np.sin(a)], 1)
     i = np.arange(n) + 0.5  # Fibonacci sphere: near-uniform points
     phi, theta = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
-    return np.asarray(c) + r * np.stack(
-        [np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1
-    )
+    return np.asarray(c) + r * np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
 
 
 def _min_dist(x: np.ndarray, surface: np.ndarray) -> np.ndarray:
@@ -81,9 +79,7 @@ def test_box_sdf_vs_surface_samples(dim, R):
     np.testing.assert_array_equal(d <= 0, inside)
     # the nearest surface sample is at most half a (diagonal) grid step further than the true surface
     ref = _min_dist(x, surface)
-    assert np.all(np.abs(d) <= ref + 1e-12) and np.all(
-        ref - np.abs(d) <= spacing * np.sqrt(dim - 1) / 2 + 1e-12
-    )
+    assert np.all(np.abs(d) <= ref + 1e-12) and np.all(ref - np.abs(d) <= spacing * np.sqrt(dim - 1) / 2 + 1e-12)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -107,11 +103,7 @@ def test_rounded_box_is_the_inner_box_dilated(dim):
     inner = _box_surface(c, h - r, R, spacing)
     x = c + _rng(3).uniform(-0.35, 0.35, (1500, dim))
     x = x[~_inside_box(x, c, h - r, R)]  # outside the inner box, distance to it = distance to its surface
-    d = (
-        ObjectSet(dim, [Primitive("box", c, half_size=h, rotation=R)], corner_radius=r)
-        .sdf(torch.as_tensor(x))
-        .numpy()
-    )
+    d = ObjectSet(dim, [Primitive("box", c, half_size=h, rotation=R)], corner_radius=r).sdf(torch.as_tensor(x)).numpy()
     ref = _min_dist(x, inner) - r
     assert np.abs(d - ref).max() <= spacing * np.sqrt(dim - 1) / 2 + 1e-12
 
@@ -142,9 +134,7 @@ def test_sdf_gradient_vs_autograd_and_finite_differences(dim):
     torch.testing.assert_close(g, auto, rtol=0, atol=1e-12)
     torch.testing.assert_close(g.norm(dim=-1), torch.ones(len(x), dtype=F64), rtol=0, atol=1e-12)
     h = 1e-6
-    fd = torch.stack(
-        [(objs.sdf(x + h * e) - objs.sdf(x - h * e)) / (2 * h) for e in torch.eye(dim, dtype=F64)], -1
-    )
+    fd = torch.stack([(objs.sdf(x + h * e) - objs.sdf(x - h * e)) / (2 * h) for e in torch.eye(dim, dtype=F64)], -1)
     # the SDF has kinks (medial axes); a random point lies within h of one with probability ~1e-5
     close = ((fd - g).abs() < 1e-6).all(-1)
     assert close.float().mean() > 0.999

@@ -344,9 +344,7 @@ def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
     assert set(other.context_id.tolist()) != set(base.context_id.tolist()), "the context seed picks the contexts"
     extra = ec.for_scene(base, task, True)
     chk = CollisionChecker(task, extra_objects=True, margin=task.spec.collision.clearance)
-    ok = (
-        chk.configs(torch.as_tensor(base.q_start)).valid & chk.configs(torch.as_tensor(base.q_goal)).valid
-    ).numpy()
+    ok = (chk.configs(torch.as_tensor(base.q_start)).valid & chk.configs(torch.as_tensor(base.q_goal)).valid).numpy()
     assert extra.index.tolist() == base.index[ok].tolist()
     assert extra.meta["skipped_index"] == base.index[~ok].tolist() and extra.meta["n_skipped"] == int((~ok).sum())
     again = ec.for_scene(base, task, True)

@@ -50,9 +50,7 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-def toy_arrays(
-    n: int = 16, horizon: int = 8, dof: int = 2, ee: bool = False, n_val: int = 0, seed: int = 0, **kw
-):
+def toy_arrays(n: int = 16, horizon: int = 8, dof: int = 2, ee: bool = False, n_val: int = 0, seed: int = 0, **kw):
     """Bimodal arcs between random start and goal (the sign of the bend is the mode)."""
     rng = np.random.default_rng(seed)
     qs, qg = rng.uniform(-1, 1, (n, dof)), rng.uniform(-1, 1, (n, dof))
@@ -72,9 +70,7 @@ def toy_arrays(
 
 
 def tiny_training(**kw) -> TrainingSpec:
-    base = dict(
-        batch_size=32, steps=40, lr=1e-3, ema_start=20, ema_every=5, val_every=10, checkpoint_every=10
-    )
+    base = dict(batch_size=32, steps=40, lr=1e-3, ema_start=20, ema_every=5, val_every=10, checkpoint_every=10)
     base.update(kw)
     return TrainingSpec(**base)
 
@@ -183,15 +179,9 @@ def test_ddpm_and_ddim_steps_end_at_clipped_x0():
     assert torch.equal(ddpm_step(xt, eps, 0, torch.randn_like(xt)), x0)
     assert torch.equal(ddim_step(xt, eps, 5, -1, eta=1.0, noise=torch.randn_like(xt)), predict_x0(xt, eps, 5))
     # no noise on the step into level 0, and eta = 0 ignores the noise
-    assert torch.equal(
-        ddim_step(xt, eps, 1, 0, 1.0, torch.randn_like(xt)), ddim_step(xt, eps, 1, 0, 1.0, None)
-    )
-    assert torch.equal(
-        ddim_step(xt, eps, 9, 4, 0.0, torch.randn_like(xt)), ddim_step(xt, eps, 9, 4, 0.0, None)
-    )
-    assert not torch.equal(
-        ddim_step(xt, eps, 9, 4, 0.5, torch.randn_like(xt)), ddim_step(xt, eps, 9, 4, 0.5, None)
-    )
+    assert torch.equal(ddim_step(xt, eps, 1, 0, 1.0, torch.randn_like(xt)), ddim_step(xt, eps, 1, 0, 1.0, None))
+    assert torch.equal(ddim_step(xt, eps, 9, 4, 0.0, torch.randn_like(xt)), ddim_step(xt, eps, 9, 4, 0.0, None))
+    assert not torch.equal(ddim_step(xt, eps, 9, 4, 0.5, torch.randn_like(xt)), ddim_step(xt, eps, 9, 4, 0.5, None))
 
 
 def test_ddim_timesteps_paper_variant():
@@ -206,9 +196,7 @@ def test_ddim_timesteps_paper_variant():
 
 def test_ddim_timesteps_official_variant():
     base = {0, 1, 4, 7, 11, 16, 22, 29, 37, 45, 55, 66, 77, 90}
-    runs = [
-        ddim_timesteps(15, variant="official", generator=torch.Generator().manual_seed(s)) for s in range(6)
-    ]
+    runs = [ddim_timesteps(15, variant="official", generator=torch.Generator().manual_seed(s)) for s in range(6)]
     for pairs in runs:
         ts = [t for t, _ in pairs]
         assert len(pairs) == 15 and pairs[-2:] == [(1, 0), (1, 0)]
@@ -241,8 +229,7 @@ def ddpm_output_law(mu: float, s: float) -> tuple[float, float]:
         a = tab["alphas_cumprod"][t]
         k = math.sqrt(1 - a) / (a * s * s + 1 - a)
         gain = (
-            tab["posterior_mean_coef1"][t] * (1 - math.sqrt(1 - a) * k) / math.sqrt(a)
-            + tab["posterior_mean_coef2"][t]
+            tab["posterior_mean_coef1"][t] * (1 - math.sqrt(1 - a) * k) / math.sqrt(a) + tab["posterior_mean_coef2"][t]
         )
         offset = tab["posterior_mean_coef1"][t] * math.sqrt(1 - a) * k * mu
         mean, var = gain * mean + offset, gain**2 * var + (tab["posterior_variance"][t] if t > 0 else 0.0)
@@ -274,9 +261,7 @@ def test_ddim_eta1_all_steps_matches_ddpm_in_distribution():
         assert abs(x.mean() - mu) < 0.02 and abs(x.std() / s - 1) < 0.08
     assert scipy.stats.ks_2samp(ddpm.numpy(), ddim.numpy()).pvalue > 0.01
     # deterministic DDIM (the probability-flow ODE) with all steps recovers the data distribution too
-    ode = sample(
-        model, {}, n, steps=100, schedule="uniform", eta=0.0, generator=torch.Generator().manual_seed(2)
-    )
+    ode = sample(model, {}, n, steps=100, schedule="uniform", eta=0.0, generator=torch.Generator().manual_seed(2))
     assert scipy.stats.kstest(ode.double().flatten().numpy(), "norm", args=(mu, s)).pvalue > 0.01
 
 
@@ -315,9 +300,7 @@ def test_cvae_trains_and_samples_with_ee_context(tmp_path):
 # --- training and checkpoints ----------------------------------------------------------------------------
 def test_tiny_model_overfits(tmp_path):
     arrays = toy_arrays(n=16)
-    spec = TrainingSpec(
-        batch_size=64, steps=300, lr=2e-3, val_every=10**6, checkpoint_every=10**6, ema_start=10**6
-    )
+    spec = TrainingSpec(batch_size=64, steps=300, lr=2e-3, val_every=10**6, checkpoint_every=10**6, ema_start=10**6)
     path = train_model(arrays, "diffusion", TINY, spec, seed=0, progress=False, cache=tmp_path)
     trained = load_model(path, device="cpu")
     x0 = trained.x_normalizer.normalize(torch.as_tensor(arrays.x)).repeat(64, 1, 1)
@@ -340,9 +323,7 @@ def test_checkpoint_round_trip_gives_identical_samples(trained):
     assert torch.equal(sa, sb) and sa.shape == (6, 8, 2)
     assert not torch.equal(sa, b.sample(ctx, 6, generator=torch.Generator().manual_seed(1), eta=0.5))
     # raw-unit samples = unnormalized network samples with the normalized context
-    net_out = b.network.sample(
-        b.normalize_context(ctx), 6, generator=torch.Generator().manual_seed(0), eta=0.5
-    )
+    net_out = b.network.sample(b.normalize_context(ctx), 6, generator=torch.Generator().manual_seed(0), eta=0.5)
     assert torch.allclose(sa, b.x_normalizer.unnormalize(net_out))
     # a second call finds the model instead of training again
     again = train_model(arrays, "diffusion", TINY, tiny_training(), seed=0, progress=False, cache=cache)
@@ -357,9 +338,7 @@ def test_same_seed_same_weights_and_resume_is_exact(tmp_path):
     spec = tiny_training()
     full = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "a")
     again = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "b")
-    partial = train_model(
-        arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "c", stop_after=23
-    )
+    partial = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "c", stop_after=23)
     assert partial.name == "last.pt" and read_checkpoint(partial)["step"] == 23
     resumed = train_model(arrays, "diffusion", TINY, spec, seed=3, progress=False, cache=tmp_path / "c")
     ref = read_checkpoint(full)
@@ -373,9 +352,7 @@ def test_ctrl_c_saves_a_state_that_resumes_exactly(tmp_path, monkeypatch):
     handler_before = signal.getsignal(signal.SIGINT)
     arrays = toy_arrays()
     spec = tiny_training(steps=20, val_every=1000)
-    ref = read_checkpoint(
-        train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "a")
-    )
+    ref = read_checkpoint(train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "a"))
     original = train_module._ema_update
     calls = []
 

@@ -285,7 +285,7 @@ def test_official_guided_step_matches_a_hand_computation():
     s = planner.settings
     shape = (3, planner.param.n_free, task.dof)
     target = torch.linspace(-0.5, 0.5, shape[1] * shape[2]).reshape(1, shape[1], shape[2])
-    planner.cost_grad_fn = lambda ctx, timer: (lambda x: x - target)
+    planner.cost_grad_fn = lambda ctx, timer: lambda x: x - target
     got = planner.sample(context_of(task), 3, torch.Generator().manual_seed(11), planner_timer(), None)
 
     abar = get_schedule(100).tables["alphas_cumprod"]
@@ -301,7 +301,7 @@ def test_official_guided_step_matches_a_hand_computation():
         sigma = 0.5 * np.sqrt((1 - a_n) / (1 - a_t) * (1 - a_t / a_n)) if tn >= 0 else 0.0
         eps = 0.3 * x + 0.01 * (t + 1)
 
-        def mean_step(xk, e):
+        def mean_step(xk, e, a_t=a_t, a_n=a_n, tn=tn, sigma=sigma):
             x0 = ((xk - np.sqrt(1 - a_t) * e) / np.sqrt(a_t)).clamp(-1, 1)
             return x0 if tn == -1 else np.sqrt(a_n) * x0 + np.sqrt(1 - a_n - sigma**2) * e
 

@@ -32,10 +32,7 @@ def _skew(w: torch.Tensor) -> torch.Tensor:
 def _planar_fk(lengths: list[float], q: torch.Tensor) -> torch.Tensor:
     """Independent FK of a planar arm with revolute z joints: joint positions and the tip, (B, n+1, 2)."""
     angles = torch.cumsum(q, -1)
-    steps = (
-        torch.stack([torch.cos(angles), torch.sin(angles)], -1)
-        * torch.tensor(lengths, dtype=q.dtype)[:, None]
-    )
+    steps = torch.stack([torch.cos(angles), torch.sin(angles)], -1) * torch.tensor(lengths, dtype=q.dtype)[:, None]
     return torch.cat([torch.zeros_like(steps[:, :1]), torch.cumsum(steps, 1)], 1)
 
 
@@ -65,9 +62,7 @@ def test_reference_fk_values():
     # the URDF's numbers are parsed as float32 by pytorch-kinematics: 1e-6, not 1e-9
     torch.testing.assert_close(p, torch.tensor([0.088, 0.0, 0.926], dtype=F64), rtol=0, atol=1e-6)
     s = 0.5**0.5
-    torch.testing.assert_close(
-        R, torch.tensor([[s, s, 0], [s, -s, 0], [0, 0, -1.0]], dtype=F64), rtol=0, atol=1e-6
-    )
+    torch.testing.assert_close(R, torch.tensor([[s, s, 0], [s, -s, 0], [0, 0, -1.0]], dtype=F64), rtol=0, atol=1e-6)
     p, _ = panda.ee_pose(torch.tensor([0, -0.785, 0, -2.356, 0, 1.571, 0.785], dtype=F64))
     torch.testing.assert_close(p, torch.tensor([0.30702, 0, 0.59027], dtype=F64), rtol=0, atol=6e-6)
     p, _ = get_robot("RobotPlanar2Link").ee_pose(torch.tensor([0.3, -0.5], dtype=F64))
@@ -271,9 +266,7 @@ def test_cuda_matches_cpu(name):
     torch.testing.assert_close(kg.points.cpu(), kc.points, rtol=0, atol=1e-12)
     torch.testing.assert_close(r.chain.ee_jacobian(kg).cpu(), r.chain.ee_jacobian(kc), rtol=0, atol=1e-12)
     g = torch.randn(kc.points.shape, generator=torch.Generator().manual_seed(0), dtype=F64)
-    torch.testing.assert_close(
-        r.chain.points_vjp(kg, g.cuda()).cpu(), r.chain.points_vjp(kc, g), rtol=0, atol=1e-10
-    )
+    torch.testing.assert_close(r.chain.points_vjp(kg, g.cuda()).cpu(), r.chain.points_vjp(kc, g), rtol=0, atol=1e-10)
     k32 = r.kinematics(q.float().cuda())
     torch.testing.assert_close(k32.points.double().cpu(), kc.points, rtol=0, atol=5e-6)
 

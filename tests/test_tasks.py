@@ -55,9 +55,7 @@ def test_cli_check_prints_summary_and_fractions(name):
     assert ": ok" in r.output and name in r.output
     fractions = re.findall(r"^\s+(training scene|extra objects)\s+(\w+)\s+([0-9.]+)$", r.output, re.M)
     kinds = {"inside", "dilated"} if "PointMass" in name else {"env", "self", "either"}
-    assert {(s, k) for s, k, _ in fractions} == {
-        (s, k) for s in ("training scene", "extra objects") for k in kinds
-    }
+    assert {(s, k) for s, k, _ in fractions} == {(s, k) for s in ("training scene", "extra objects") for k in kinds}
     assert all(0 <= float(v) <= 1 for *_, v in fractions)
 
 
@@ -79,9 +77,7 @@ def test_cli_show_writes_a_figure(tmp_path):
     )
     assert r.exit_code == 0, r.output
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 10_000
-    q = torch.tensor(
-        [float(v) for v in re.search(r"q = \[(.*)\]", r.output).group(1).split(",")], dtype=torch.float64
-    )
+    q = torch.tensor([float(v) for v in re.search(r"q = \[(.*)\]", r.output).group(1).split(",")], dtype=torch.float64)
     # the drawn configuration is valid in the scene that was drawn (rounded to 4 decimals in the message)
     from mpd.collision import CollisionChecker
 

@@ -134,9 +134,7 @@ def test_task_parametrizations():
     ]:
         t = load_task(name)
         par = make_parametrization(t)
-        assert (
-            par.n_free == n_free and par.ee_goal == t.ee_goal and par.duration == t.spec.trajectory.duration
-        )
+        assert par.n_free == n_free and par.ee_goal == t.ee_goal and par.duration == t.spec.trajectory.duration
         wp = make_parametrization(t, "waypoints")
         assert wp.n_params == t.spec.trajectory.n_control_points
     with pytest.raises(ValueError, match="unknown parametrization"):

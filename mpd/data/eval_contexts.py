@@ -110,7 +110,9 @@ def held_out_candidates(task: Task, dataset, seed: int) -> dict[str, np.ndarray]
 def _valid(task: Task, q: np.ndarray, extra_objects: bool, rotation_deg: float) -> np.ndarray:
     from mpd.data.checkers import SphereChecker
 
-    chk = SphereChecker(task, extra_objects=extra_objects, clearance=task.spec.collision.clearance, rotation_deg=rotation_deg)
+    chk = SphereChecker(
+        task, extra_objects=extra_objects, clearance=task.spec.collision.clearance, rotation_deg=rotation_deg
+    )
     try:
         return chk.valid(np.asarray(q, dtype=np.float64))
     finally:

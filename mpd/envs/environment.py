@@ -27,9 +27,7 @@ class Environment:
             self.dim, build_primitives(spec.obstacles, self.dim, rotation_deg), spec.box_corner_radius
         )
         self.extra = (
-            ObjectSet(
-                self.dim, build_primitives(spec.extra_objects, self.dim, rotation_deg), spec.box_corner_radius
-            )
+            ObjectSet(self.dim, build_primitives(spec.extra_objects, self.dim, rotation_deg), spec.box_corner_radius)
             if extra_objects and spec.extra_objects
             else None
         )

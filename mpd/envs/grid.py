@@ -90,7 +90,9 @@ class AuthorsGridSDF:
         self.lo = np.asarray(lo, dtype=np.float64)
         self.hi = np.asarray(hi, dtype=np.float64)
         self.shape = tuple(int(math.ceil((h - l) / cell)) for l, h in zip(self.lo, self.hi))
-        axes = [torch.linspace(float(l), float(h), n, dtype=torch.float64) for l, h, n in zip(self.lo, self.hi, self.shape)]
+        axes = [
+            torch.linspace(float(l), float(h), n, dtype=torch.float64) for l, h, n in zip(self.lo, self.hi, self.shape)
+        ]
         nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
         self._values = objects.sdf(nodes).reshape(-1)
         self._strides = torch.as_tensor([int(np.prod(self.shape[k + 1 :])) for k in range(self.dim)])

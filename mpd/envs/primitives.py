@@ -129,8 +129,6 @@ def build_primitives(specs, dim: int, rotation_deg: float = 0.0) -> list[Primiti
             r = quat_wxyz_to_matrix(o.orientation_wxyz) if o.orientation_wxyz is not None else np.eye(3)
             r = rz @ r[:dim, :dim]
             prims.append(
-                Primitive(
-                    "box", c, half_size=np.asarray(o.size, dtype=np.float64) / 2, rotation=r, name=o.name
-                )
+                Primitive("box", c, half_size=np.asarray(o.size, dtype=np.float64) / 2, rotation=r, name=o.name)
             )
     return prims

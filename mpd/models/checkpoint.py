@@ -68,9 +68,7 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # zip / unpickling errors of a truncated or foreign file
         reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ConfigError(
-            path, "", f"not a readable mpd checkpoint (truncated or corrupted file?): {reason}"
-        ) from None
+        raise ConfigError(path, "", f"not a readable mpd checkpoint (truncated or corrupted file?): {reason}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ConfigError(path, "", f"not an mpd model checkpoint (no format = {FORMAT!r} marker)")
     if ckpt.get("format_version") != FORMAT_VERSION:
@@ -138,16 +136,12 @@ class LoadedModel:
         out = {}
         for key, shape in context_shapes(self.context_kind, self.dof).items():
             if key not in context:
-                raise ValueError(
-                    f"{self.path}: a {self.context_kind} context needs {key!r}, got {sorted(context)}"
-                )
+                raise ValueError(f"{self.path}: a {self.context_kind} context needs {key!r}, got {sorted(context)}")
             v = _as_tensor(context[key], self.device)
             if tuple(v.shape) == shape:
                 v = v.unsqueeze(0)
             if tuple(v.shape[1:]) != shape:
-                raise ValueError(
-                    f"context[{key!r}] must have shape {shape} or (B, *{shape}), got {tuple(v.shape)}"
-                )
+                raise ValueError(f"context[{key!r}] must have shape {shape} or (B, *{shape}), got {tuple(v.shape)}")
             out[key] = v if key in UNNORMALIZED_KEYS else self.context_normalizers[key].normalize(v)
         return out
 
@@ -200,15 +194,12 @@ def load_model(
     ckpt = read_checkpoint(path)
     path = Path(ckpt["_path"])
     if expect_task is not None and ckpt["task_name"] != expect_task:
-        raise ConfigError(
-            path, "task_name", f"checkpoint is for task {ckpt['task_name']!r}, expected {expect_task!r}"
-        )
+        raise ConfigError(path, "task_name", f"checkpoint is for task {ckpt['task_name']!r}, expected {expect_task!r}")
     if expect_parametrization is not None and ckpt["parametrization"] != expect_parametrization:
         raise ConfigError(
             path,
             "parametrization",
-            f"checkpoint is for parametrization {ckpt['parametrization']!r}, "
-            f"expected {expect_parametrization!r}",
+            f"checkpoint is for parametrization {ckpt['parametrization']!r}, expected {expect_parametrization!r}",
         )
     spec = from_dict(ModelSpec, ckpt["model_spec"], source=path, where="model_spec")
     from_dict(TrainingSpec, ckpt["training_spec"], source=path, where="training_spec")

@@ -89,9 +89,7 @@ class CVAE(nn.Module):
     def encode(self, x: torch.Tensor, context_emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(mu, logvar), each ``(B, latent_dim)``; logvar soft-clipped to (LOGVAR_MIN, LOGVAR_MAX)."""
         if tuple(x.shape[1:]) != (self.horizon, self.dof):
-            raise ValueError(
-                f"CVAE built for x of shape (B, {self.horizon}, {self.dof}), got {tuple(x.shape)}"
-            )
+            raise ValueError(f"CVAE built for x of shape (B, {self.horizon}, {self.dof}), got {tuple(x.shape)}")
         h = pad_horizon(x.transpose(1, 2), self.n_levels)
         for res1, res2, down in self.downs:
             h = down(res2(res1(h, context_emb), context_emb))

@@ -47,9 +47,7 @@ class TrainingArrays:
 
     def validate(self) -> None:
         if not isinstance(self.x, np.ndarray) or self.x.ndim != 3 or 0 in self.x.shape:
-            self._fail(
-                "x", f"expected a non-empty (N, H, d) array, got {getattr(self.x, 'shape', type(self.x))}"
-            )
+            self._fail("x", f"expected a non-empty (N, H, d) array, got {getattr(self.x, 'shape', type(self.x))}")
         if not np.isfinite(self.x).all():
             self._fail("x", "contains NaN or inf")
         n, _, dof = self.x.shape
@@ -60,15 +58,11 @@ class TrainingArrays:
         for key, shape in context_shapes(kind, dof).items():
             v = self.context[key]
             if not isinstance(v, np.ndarray) or v.shape != (n, *shape):
-                self._fail(
-                    f"context[{key!r}]", f"expected shape {(n, *shape)}, got {getattr(v, 'shape', type(v))}"
-                )
+                self._fail(f"context[{key!r}]", f"expected shape {(n, *shape)}, got {getattr(v, 'shape', type(v))}")
             if not np.isfinite(v).all():
                 self._fail(f"context[{key!r}]", "contains NaN or inf")
         if not isinstance(self.split, np.ndarray) or self.split.shape != (n,):
-            self._fail(
-                "split", f"expected shape ({n},), got {getattr(self.split, 'shape', type(self.split))}"
-            )
+            self._fail("split", f"expected shape ({n},), got {getattr(self.split, 'shape', type(self.split))}")
         bad = set(np.unique(self.split).tolist()) - set(SPLIT_NAMES)
         if bad:
             self._fail("split", f"values must be 0 (train), 1 (val) or 2 (test), found {sorted(bad)}")
@@ -79,9 +73,7 @@ class TrainingArrays:
                 self._fail(name, "must be a non-empty string")
         for name in ("task_name", "parametrization"):  # they name folders of the model cache
             if not _SAFE_NAME.fullmatch(getattr(self, name)):
-                self._fail(
-                    name, f"{getattr(self, name)!r} may only contain letters, digits, '_', '-' and '.'"
-                )
+                self._fail(name, f"{getattr(self, name)!r} may only contain letters, digits, '_', '-' and '.'")
         try:
             canonical_json(self.parametrization_settings)
         except TypeError as e:

@@ -305,9 +305,7 @@ class DiffusionModel(nn.Module):
     def n_diffusion_steps(self) -> int:
         return self.schedule.n_steps
 
-    def forward(
-        self, x_t: torch.Tensor, t: int | torch.Tensor, context: Mapping[str, torch.Tensor]
-    ) -> torch.Tensor:
+    def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, context: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """Predicted noise. Context fields have batch 1 (shared by every sample) or the batch of ``x_t``."""
         return self.unet(x_t, t, self.context_encoder(context))
 

@@ -32,9 +32,7 @@ class Normalizer:
         lo = np.asarray(lo, dtype=np.float64).reshape(-1)
         hi = np.asarray(hi, dtype=np.float64).reshape(-1)
         if lo.shape != hi.shape or lo.size == 0:
-            raise ValueError(
-                f"normalizer needs lo and hi of the same non-empty shape, got {lo.shape} and {hi.shape}"
-            )
+            raise ValueError(f"normalizer needs lo and hi of the same non-empty shape, got {lo.shape} and {hi.shape}")
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             raise ValueError("normalizer limits must be finite")
         if (hi < lo).any():
@@ -67,11 +65,7 @@ class Normalizer:
         return cls(d["lo"], d["hi"])
 
     def __eq__(self, other: object) -> bool:
-        return (
-            isinstance(other, Normalizer)
-            and np.array_equal(self.lo, other.lo)
-            and np.array_equal(self.hi, other.hi)
-        )
+        return isinstance(other, Normalizer) and np.array_equal(self.lo, other.lo) and np.array_equal(self.hi, other.hi)
 
     def __repr__(self) -> str:
         return f"Normalizer(lo={np.round(self.lo, 4).tolist()}, hi={np.round(self.hi, 4).tolist()})"

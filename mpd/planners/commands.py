@@ -34,9 +34,7 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
     out = np.nonzero((q < lo) | (q > hi))[0]
     if len(out):
         j = int(out[0])
-        raise ConfigError(
-            f"--{name}", "", f"joint {j} = {q[j]:g} is outside its limits [{lo[j]:g}, {hi[j]:g}]"
-        )
+        raise ConfigError(f"--{name}", "", f"joint {j} = {q[j]:g} is outside its limits [{lo[j]:g}, {hi[j]:g}]")
     v = CollisionChecker(task, extra_objects, rotation_deg).configs(qt[None])
     if not bool(v.env_free[0]):
         raise ConfigError(f"--{name}", "", f"{list(np.round(q, 4))} is in collision with the environment")
@@ -62,12 +60,8 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
     show_default=True,
     help="trajectories per context",
 )
-@click.option(
-    "--n-contexts", type=int, default=1, show_default=True, help="plan the first N evaluation contexts"
-)
-@click.option(
-    "--start", default=None, help="start configuration, comma separated (instead of evaluation contexts)"
-)
+@click.option("--n-contexts", type=int, default=1, show_default=True, help="plan the first N evaluation contexts")
+@click.option("--start", default=None, help="start configuration, comma separated (instead of evaluation contexts)")
 @click.option(
     "--goal",
     default=None,
@@ -84,9 +78,7 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
 )
 @click.option("--preset", type=click.Choice(["official", "paper"]), default="official", show_default=True)
 @click.option("--sampler", type=click.Choice(["ddim", "ddpm"]), default="ddim", show_default=True)
-@click.option(
-    "--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True
-)
+@click.option("--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True)
 @click.option(
     "--model",
     "model_ref",
@@ -199,9 +191,7 @@ def plan(
         "smoothness",
     )
     mean = {
-        k: float(np.nanmean([s[k] for s in summary]))
-        if any(not np.isnan(s[k]) for s in summary)
-        else float("nan")
+        k: float(np.nanmean([s[k] for s in summary])) if any(not np.isnan(s[k]) for s in summary) else float("nan")
         for k in keys
     }
     mean["time_total"] = float(np.mean([s["timings"]["total"] for s in summary]))
@@ -234,11 +224,7 @@ def find_model(task, kind: str, parametrization: str, ref: str, device=None):
     p = Path(ref)
     if ref != "latest" and p.exists():
         return load_model(p, expect_task=task.name, expect_parametrization=parametrization, device=device)
-    metas = [
-        m
-        for m in list_models(task.name)
-        if m.get("kind") == kind and m.get("parametrization") == parametrization
-    ]
+    metas = [m for m in list_models(task.name) if m.get("kind") == kind and m.get("parametrization") == parametrization]
     if ref != "latest":
         metas = [m for m in metas if str(m.get("identity", "")).startswith(ref)]
     if not metas:
@@ -250,9 +236,7 @@ def find_model(task, kind: str, parametrization: str, ref: str, device=None):
             f"(train one: mpd train --task {task.name} --model {kind} --parametrization {parametrization})",
         )
     newest = max(metas, key=lambda m: Path(m["path"]).stat().st_mtime)
-    return load_model(
-        newest["path"], expect_task=task.name, expect_parametrization=parametrization, device=device
-    )
+    return load_model(newest["path"], expect_task=task.name, expect_parametrization=parametrization, device=device)
 
 
 def _context_from_goal(task, qs: np.ndarray, qg: np.ndarray):

@@ -103,9 +103,7 @@ class GPPriorCost(Planner):
         from mpd.planners.goals import ik_goals
 
         with timer("ik"):
-            return ik_goals(self.task, self.env, ctx, n, gen, restarts=self.settings.ik_restarts).to(
-                ctx.q_start
-            )
+            return ik_goals(self.task, self.env, ctx, n, gen, restarts=self.settings.ik_restarts).to(ctx.q_start)
 
     def sample_prior(self, ctx: Context, n: int, gen: torch.Generator, timer: Timer) -> torch.Tensor:
         """n samples of the free rows (normalized)."""
@@ -135,9 +133,7 @@ class GPPriorCost(Planner):
         t = torch.as_tensor(ph_free, dtype=qs.dtype, device=qs.device)[None, :, None]
         mean = qs + t * (qg - qs)  # (n, n_free, dof)
         cov = bridge_covariance(ph_free, self.settings.gp_lengthscale)
-        L = torch.as_tensor(
-            np.linalg.cholesky(cov + 1e-9 * np.eye(len(ph_free))), dtype=qs.dtype, device=qs.device
-        )
+        L = torch.as_tensor(np.linalg.cholesky(cov + 1e-9 * np.eye(len(ph_free))), dtype=qs.dtype, device=qs.device)
         z = torch.randn(n, len(ph_free), self.task.dof, generator=gen, device=gen.device).to(qs)
         x = mean + self.settings.gp_sigma * (L @ z)
         if self.param.ee_goal:  # the final configuration is the IK goal itself (zero deviation at phase 1)
@@ -156,11 +152,7 @@ class GPPriorCost(Planner):
             cb = (
                 None
                 if hist is None
-                else (
-                    lambda k, x: hist.append(
-                        HistoryStep("optimization", k + 1, self.normalizer.unnormalize(x))
-                    )
-                )
+                else (lambda k, x: hist.append(HistoryStep("optimization", k + 1, self.normalizer.unnormalize(x))))
             )
             x = optimize(
                 x0,

@@ -33,9 +33,7 @@ class MPD(Planner):
     model_kind = "diffusion"
     guided = True
 
-    def sample(
-        self, ctx: Context, n: int, gen: torch.Generator, timer: Timer, hist: list | None
-    ) -> torch.Tensor:
+    def sample(self, ctx: Context, n: int, gen: torch.Generator, timer: Timer, hist: list | None) -> torch.Tensor:
         """n samples (normalized free rows) of the guided (or, for Dprior, unguided) denoising process."""
         s = self.settings
         net = self.model.network
@@ -51,9 +49,7 @@ class MPD(Planner):
             return randn(shape, gen, dev) if sigma > 0 and t_next >= 1 else None
 
         if s.sampler == "ddim":
-            pairs = ddim_timesteps(
-                s.ddim_steps, s.ddim_schedule, net.n_diffusion_steps, s.ddim_variant, generator=gen
-            )
+            pairs = ddim_timesteps(s.ddim_steps, s.ddim_schedule, net.n_diffusion_steps, s.ddim_variant, generator=gen)
             n_guided = s.guided_steps(len(pairs)) if self.guided else 0
             for i, (t, tn) in enumerate(pairs):
                 with timer("network"):
@@ -86,9 +82,7 @@ class MPD(Planner):
                 guided = t < n_guided
                 mean = ddpm_mean(x, s.ddpm_prior_weight * eps if guided else eps, t, schedule=sch)
                 if guided:
-                    mean = optimize(
-                        mean, grad_fn, s.ddpm_n_inner_steps, s.ddpm_guide_lr, s.max_perturb, s.grad_clip
-                    )
+                    mean = optimize(mean, grad_fn, s.ddpm_n_inner_steps, s.ddpm_guide_lr, s.max_perturb, s.grad_clip)
                 std = (s.ddpm_variance_scale * float(sch.tables["posterior_variance"][t])) ** 0.5
                 x = mean + std * randn(shape, gen, dev) if t > 0 and std > 0 else mean
                 if hist is not None:

@@ -10,9 +10,7 @@ from mpd.planners.base import Context, HistoryStep, Planner, Timer
 from mpd.planners.optimize import optimize
 
 
-def optimize_samples(
-    planner: Planner, x: torch.Tensor, ctx: Context, timer: Timer, hist: list | None
-) -> torch.Tensor:
+def optimize_samples(planner: Planner, x: torch.Tensor, ctx: Context, timer: Timer, hist: list | None) -> torch.Tensor:
     s = planner.settings
     start = len(hist) if hist is not None else 0
 
@@ -20,6 +18,4 @@ def optimize_samples(
         if hist is not None:
             hist.append(HistoryStep("optimization", start + k, planner.normalizer.unnormalize(xk)))
 
-    return optimize(
-        x, planner.cost_grad_fn(ctx, timer), s.opt_steps, s.opt_lr, s.opt_max_perturb, s.opt_grad_clip, cb
-    )
+    return optimize(x, planner.cost_grad_fn(ctx, timer), s.opt_steps, s.opt_lr, s.opt_max_perturb, s.opt_grad_clip, cb)

@@ -41,9 +41,7 @@ class RRTConnectCost(Planner):
                 from mpd.planners.goals import ik_goals
 
                 with timer("ik"):
-                    goals = ik_goals(
-                        self.task, self.env, ctx, n_samples, gen, restarts=self.settings.ik_restarts
-                    )
+                    goals = ik_goals(self.task, self.env, ctx, n_samples, gen, restarts=self.settings.ik_restarts)
             paths = []
             qs = ctx.q_start.detach().cpu().double().numpy()
             for i in range(n_samples):

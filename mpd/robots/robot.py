@@ -24,9 +24,7 @@ def _quiet_pk():
 def pk_serial_chain(urdf_path: str, end_link: str):
     """pytorch-kinematics chain of a URDF (float64, CPU): the reference FK/Jacobian for tests."""
     pk = _quiet_pk()
-    return pk.build_serial_chain_from_urdf(Path(urdf_path).read_bytes(), end_link_name=end_link).to(
-        dtype=torch.float64
-    )
+    return pk.build_serial_chain_from_urdf(Path(urdf_path).read_bytes(), end_link_name=end_link).to(dtype=torch.float64)
 
 
 def _frames_from_joints(spec: RobotSpec) -> list[ChainFrame]:
@@ -34,9 +32,7 @@ def _frames_from_joints(spec: RobotSpec) -> list[ChainFrame]:
     prev = spec.joints[0].parent
     for j in spec.joints:
         if j.parent != prev:
-            raise ValueError(
-                f"joint {j.name!r}: parent {j.parent!r} does not follow {prev!r} (chains must be serial)"
-            )
+            raise ValueError(f"joint {j.name!r}: parent {j.parent!r} does not follow {prev!r} (chains must be serial)")
         T = np.eye(4)
         T[:3, :3] = rpy_to_matrix(j.rpy)
         T[:3, 3] = j.xyz
@@ -71,9 +67,7 @@ class Robot:
         self.task_dim = spec.task_dim
         frames = _frames_from_urdf(spec) if spec.urdf is not None else _frames_from_joints(spec)
         self.sphere_links = [s.link for s in spec.spheres]
-        self.chain = KinematicChain(
-            frames, self.sphere_links, np.array([s.centre for s in spec.spheres]), spec.ee_link
-        )
+        self.chain = KinematicChain(frames, self.sphere_links, np.array([s.centre for s in spec.spheres]), spec.ee_link)
         self.dof = self.chain.dof
         self.joint_names = self.chain.joint_names
         lim = spec.limits
@@ -93,9 +87,7 @@ class Robot:
         self.self_pairs = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2)
 
     def __repr__(self) -> str:
-        return (
-            f"Robot({self.name}, dof={self.dof}, spheres={self.n_spheres}, self_pairs={len(self.self_pairs)})"
-        )
+        return f"Robot({self.name}, dof={self.dof}, spheres={self.n_spheres}, self_pairs={len(self.self_pairs)})"
 
     # ------------------------------------------------------------------ limits and sampling
     def limits(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -77,9 +77,7 @@ def list_cmd() -> None:
 
 @tasks.command("check")
 @click.argument("file")
-@click.option(
-    "--samples", default=100_000, show_default=True, help="random samples per scene for the fractions"
-)
+@click.option("--samples", default=100_000, show_default=True, help="random samples per scene for the fractions")
 @click.option("--seed", default=0, show_default=True)
 @_config_errors
 def check_cmd(file: str, samples: int, seed: int) -> None:
@@ -118,13 +116,9 @@ def check_cmd(file: str, samples: int, seed: int) -> None:
 
 @tasks.command("show")
 @click.argument("task")
-@click.option(
-    "--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="figure (.png or .pdf)"
-)
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="figure (.png or .pdf)")
 @click.option("--extra-objects", is_flag=True, help="add the task's extra (unseen) objects")
-@click.option(
-    "--rotation", "rotation_deg", default=0.0, show_default=True, help="rotate the scene about z [deg]"
-)
+@click.option("--rotation", "rotation_deg", default=0.0, show_default=True, help="rotate the scene about z [deg]")
 @click.option("--seed", default=0, show_default=True, help="seed of the random valid configuration")
 @_config_errors
 def show_cmd(task: str, out: Path, extra_objects: bool, rotation_deg: float, seed: int) -> None:
@@ -201,9 +195,7 @@ def new_cmd(name: str, base: str, out_dir: Path, n_contexts: int, force: bool) -
     old = f'name = "{src.name}"'
     if old not in text:
         raise ConfigError(src.path, "name", f"expected a line {old!r} to rename")
-    text = _TASK_HEADER.format(name=name, base=src.name, file=task_file.name) + text.replace(
-        old, f'name = "{name}"', 1
-    )
+    text = _TASK_HEADER.format(name=name, base=src.name, file=task_file.name) + text.replace(old, f'name = "{name}"', 1)
     if f'description = "{src.spec.description}"' in text:
         text = text.replace(f'description = "{src.spec.description}"', f'description = "{name} (from {src.name})"')
     from_dict(TaskSpec, tomllib.loads(text), source=task_file)  # e.g. the new name must be a valid one

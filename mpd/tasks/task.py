@@ -91,9 +91,7 @@ def resolve_task_path(name_or_path: str | Path) -> Path:
         return p
     files = task_files()
     if str(name_or_path) not in files:
-        raise ConfigError(
-            name_or_path, "", f"unknown task (known: {', '.join(files)}; or give a path to a .toml file)"
-        )
+        raise ConfigError(name_or_path, "", f"unknown task (known: {', '.join(files)}; or give a path to a .toml file)")
     return files[str(name_or_path)]
 
 

@@ -13,13 +13,9 @@ def make_parametrization(task, kind: str = "bspline") -> LinearTrajectory:
     """The trajectory parametrization of a task (``bspline`` or ``waypoints``) with the task's settings."""
     tr = task.spec.trajectory
     if kind == "bspline":
-        return BSplineTrajectory(
-            tr.n_control_points, tr.bspline_degree, tr.n_points, tr.duration, task.ee_goal
-        )
+        return BSplineTrajectory(tr.n_control_points, tr.bspline_degree, tr.n_points, tr.duration, task.ee_goal)
     if kind == "waypoints":
-        return WaypointTrajectory(
-            tr.n_waypoints or tr.n_control_points, tr.n_points, tr.duration, task.ee_goal
-        )
+        return WaypointTrajectory(tr.n_waypoints or tr.n_control_points, tr.n_points, tr.duration, task.ee_goal)
     raise ValueError(f"unknown parametrization {kind!r} (known: {', '.join(PARAMETRIZATIONS)})")
 
 

@@ -100,9 +100,7 @@ class LinearTrajectory:
         return self._cache[key]
 
     # -----------------------------------------------------------------------------------------------------------
-    def full(
-        self, free: torch.Tensor, q_start: torch.Tensor, q_goal: torch.Tensor | None = None
-    ) -> torch.Tensor:
+    def full(self, free: torch.Tensor, q_start: torch.Tensor, q_goal: torch.Tensor | None = None) -> torch.Tensor:
         """All parameter rows W (B, n_params, dof) from the free rows (B, n_free, dof) and the context."""
         m = self._t(free.dtype, free.device)
         w = torch.einsum("ph,bhd->bpd", m["a_free"], free) + m["a_start"][None, :, None] * q_start[:, None, :]
@@ -148,13 +146,9 @@ class LinearTrajectory:
 
     def _check(self, free, q_start, q_goal):
         if free.ndim != 3 or free.shape[1] != self.n_free:
-            raise ValueError(
-                f"expected free parameters of shape (B, {self.n_free}, dof), got {tuple(free.shape)}"
-            )
+            raise ValueError(f"expected free parameters of shape (B, {self.n_free}, dof), got {tuple(free.shape)}")
         if q_start.shape != (free.shape[0], free.shape[2]):
-            raise ValueError(
-                f"q_start has shape {tuple(q_start.shape)}, expected {(free.shape[0], free.shape[2])}"
-            )
+            raise ValueError(f"q_start has shape {tuple(q_start.shape)}, expected {(free.shape[0], free.shape[2])}")
         if not self.ee_goal and (q_goal is None or q_goal.shape != q_start.shape):
             raise ValueError("a joint-goal trajectory needs q_goal of the same shape as q_start")
 

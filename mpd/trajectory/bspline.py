@@ -116,12 +116,8 @@ class BSplineTrajectory(LinearTrajectory):
         for i, path in enumerate(paths):
             u = _chord_parameter(path)
             with warnings.catch_warnings():
-                warnings.simplefilter(
-                    "ignore"
-                )  # splprep warns on nearly straight 2-D paths; the fit is still fine
-                (t, c, _k), _u = interpolate.splprep(
-                    list(path.T), u=u, k=self.degree, t=self.knots, task=-1, s=0
-                )
+                warnings.simplefilter("ignore")  # splprep warns on nearly straight 2-D paths; the fit is still fine
+                (t, c, _k), _u = interpolate.splprep(list(path.T), u=u, k=self.degree, t=self.knots, task=-1, s=0)
             assert np.allclose(t[self.degree + 1 : -self.degree - 1], inner)
             w = np.stack(c, 1)[: self.n_params]
             w[:3] = path[0]
