@@ -144,6 +144,30 @@ def _provenance_md(run_dir: Path, man: dict, df: pd.DataFrame, info: dict) -> li
         markdown_table(["task", "task file", "dataset (content hash)", "models", "model file hashes"], trows),
         "",
     ]
+    crows = []
+    for task in task_order(df["task"].unique()):
+        for scene, c in sorted((arts.get(task, {}).get("contexts") or {}).items()):
+            crows.append(
+                [
+                    task,
+                    scene,
+                    str(c.get("source", "")),
+                    str(c.get("n_contexts", "")),
+                    str(c.get("n_skipped", 0)),
+                    str(c.get("context_seed", "")),
+                    f"`{str(c.get('sha256', ''))[:16]}`",
+                ]
+            )
+    if crows:
+        out += [
+            "### Evaluation contexts",
+            "",
+            "One content-addressed file per task and scene (`mpd data contexts --list`): held-out contexts of the "
+            "dataset, those invalid in a scene skipped there only (`mpd.data.eval_contexts`).",
+            "",
+            markdown_table(["task", "scene", "source", "contexts", "skipped", "context seed", "file (sha256)"], crows),
+            "",
+        ]
     libs = prov.get("libraries") or {}
     if not libs and "libraries" in df.columns:
         libs = dict(kv.split("=", 1) for kv in str(_first(df, "libraries")).split(",") if "=" in kv)
