@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from mpd.viz import report_figures as rf
 from mpd.viz.report import FigureError, build_report
 from mpd.viz.report_data import prepare
-from mpd.viz.report_style import wilson
+from mpd.stats import wilson
 
 SIMPLE = "EnvSimple2D-RobotPointMass2D"
 
