@@ -51,16 +51,23 @@ def _dense(task, free, qs, qg):
     return p.dense(free, qs.expand(B, -1), qg.expand(B, -1))
 
 
-def test_evaluate_point_mass():
-    task = load_task("EnvSimple2D-RobotPointMass2D")
-    chk = CollisionChecker(task)
+def _line_and_through(task):
+    """Free rows of a valid straight line along x = -0.2 (3.6 cm from the nearest disc) and of a path through the
+    disc at (-0.370, -0.123), with their start and goal."""
     qs = torch.tensor([-0.2, -0.9], dtype=torch.float64)
     qg = torch.tensor([-0.2, 0.9], dtype=torch.float64)
     p = make_parametrization(task, "bspline")
     ph = torch.as_tensor(p.param_phases()[p.a_free.argmax(0)], dtype=torch.float64)
-    line = qs + ph[:, None] * (qg - qs)  # along x = -0.2: 3.6 cm from the nearest disc
+    line = qs + ph[:, None] * (qg - qs)
     through = line.clone()
-    through[:, 0] = -0.37  # through the disc at (-0.370, -0.123)
+    through[:, 0] = -0.37
+    return line, through, qs, qg
+
+
+def test_evaluate_point_mass():
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    chk = CollisionChecker(task)
+    line, through, qs, qg = _line_and_through(task)
     free = torch.stack([line, line, through])
     m, val, best = evaluate(chk, _dense(task, free, qs, qg), q_goal=qg)
     assert set(m) == set(METRICS)
@@ -154,13 +161,7 @@ def test_vendi_of_a_single_valid_trajectory_is_missing():
     """The authors record no diversity with fewer than two valid trajectories (1.0 would read as 'no diversity')."""
     task = load_task("EnvSimple2D-RobotPointMass2D")
     chk = CollisionChecker(task)
-    qs = torch.tensor([-0.2, -0.9], dtype=torch.float64)
-    qg = torch.tensor([-0.2, 0.9], dtype=torch.float64)
-    p = make_parametrization(task, "bspline")
-    ph = torch.as_tensor(p.param_phases()[p.a_free.argmax(0)], dtype=torch.float64)
-    line = qs + ph[:, None] * (qg - qs)
-    through = line.clone()
-    through[:, 0] = -0.37
+    line, through, qs, qg = _line_and_through(task)
     m, val, best = evaluate(chk, _dense(task, torch.stack([line, through]), qs, qg), q_goal=qg)
     assert val.valid.tolist() == [True, False] and m["n_valid"] == 1.0
     assert np.isnan(m["vendi"]) and best == 0

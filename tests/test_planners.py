@@ -14,35 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from mpd.models.checkpoint import LoadedModel, build_network
-from mpd.models.context import context_keys
-from mpd.models.normalizer import Normalizer
 from mpd.planners import PLANNERS, Context, make_planner
 from mpd.planners import mpd as mpd_module
+from mpd.planners.conformance import random_model
 from mpd.tasks import load_task
 from mpd.tasks.spec import ModelSpec
-from mpd.trajectory import make_parametrization
 
 SMALL = ModelSpec(unet_dim=8, unet_dim_mults=[1, 2], context_dim=8, context_layers=1, time_emb_dim=8)
-
-
-def random_model(task, kind: str, parametrization: str = "bspline", seed: int = 0) -> LoadedModel:
-    param = make_parametrization(task, parametrization)
-    ctx_kind = "goal_ee_pose" if task.ee_goal else "goal_joint_position"
-    torch.manual_seed(seed)
-    net = build_network(kind, task.dof, param.n_free, ctx_kind, SMALL).eval().requires_grad_(False)
-    lo, hi = task.robot.q_min.float(), task.robot.q_max.float()
-    norms = {k: Normalizer(lo, hi) for k in context_keys(ctx_kind) if k in ("q_start", "q_goal")}
-    if task.ee_goal:
-        norms["ee_pos"] = Normalizer(-torch.ones(3), torch.ones(3))
-    meta = {
-        "task_name": task.name,
-        "parametrization": parametrization,
-        "horizon": param.n_free,
-        "dof": task.dof,
-        "context_kind": ctx_kind,
-    }
-    return LoadedModel(kind, net, Normalizer(lo, hi), norms, meta, path=f"<random {kind}>")
 
 
 def context_of(task) -> Context:

@@ -11,10 +11,10 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
+from mpd.stats import wilson
 from mpd.viz import report_figures as rf
 from mpd.viz.report import FigureError, build_report
 from mpd.viz.report_data import prepare
-from mpd.stats import wilson
 
 SIMPLE = "EnvSimple2D-RobotPointMass2D"
 

@@ -65,6 +65,21 @@ class ContextSet:
             out["ee_pos"], out["ee_rot"] = self.ee_pos[i], self.ee_rot[i]
         return out
 
+    @classmethod
+    def from_arrays(cls, task: str, scene: str, arrays: dict[str, np.ndarray], meta: dict) -> ContextSet:
+        """A set from the arrays of :meth:`arrays` (``index`` and ``context_id`` included)."""
+        return cls(
+            task,
+            scene,
+            arrays["q_start"],
+            arrays["q_goal"],
+            arrays["index"],
+            arrays["context_id"],
+            arrays.get("ee_pos"),
+            arrays.get("ee_rot"),
+            meta,
+        )
+
     def arrays(self) -> dict[str, np.ndarray]:
         out = {"q_start": self.q_start, "q_goal": self.q_goal, "index": self.index, "context_id": self.context_id}
         if self.ee_pos is not None:
@@ -109,6 +124,9 @@ def held_out_candidates(task: Task, dataset, seed: int) -> dict[str, np.ndarray]
 
 def _valid(task: Task, q: np.ndarray, extra_objects: bool, rotation_deg: float) -> np.ndarray:
     from mpd.data.checkers import SphereChecker
+
+    if len(q) == 0:
+        return np.zeros(0, dtype=bool)
 
     chk = SphereChecker(
         task, extra_objects=extra_objects, clearance=task.spec.collision.clearance, rotation_deg=rotation_deg
@@ -170,19 +188,7 @@ def for_scene(base: ContextSet, task: Task, extra_objects: bool, rotation_deg: f
     arrays = {k: v[keep] for k, v in base.arrays().items()}
     meta = dict(base.meta, scene=scene, n_contexts=int(keep.sum()), n_skipped=int((~keep).sum()))
     meta["skipped_index"] = base.index[~keep].tolist()
-    return finalize(
-        ContextSet(
-            task.name,
-            scene,
-            arrays["q_start"],
-            arrays["q_goal"],
-            arrays["index"],
-            arrays["context_id"],
-            arrays.get("ee_pos"),
-            arrays.get("ee_rot"),
-            meta,
-        )
-    )
+    return finalize(ContextSet.from_arrays(task.name, scene, arrays, meta))
 
 
 def sampled_contexts(task: Task, n: int, extra_objects: bool, rotation_deg: float = 0.0) -> ContextSet:
@@ -247,17 +253,7 @@ def load_context_file(path: str | Path) -> ContextSet:
     if not path.stem.endswith(sha[:16]) or meta.get("sha256", sha) != sha:
         raise ValueError(f"context file {path} does not match its hash (corrupted or edited): sha256 {sha[:16]}")
     meta.update(sha256=sha, path=str(path))
-    return ContextSet(
-        meta.get("task", path.stem.rsplit("-", 2)[0]),
-        meta.get("scene", ""),
-        arrays["q_start"],
-        arrays["q_goal"],
-        arrays["index"],
-        arrays["context_id"],
-        arrays.get("ee_pos"),
-        arrays.get("ee_rot"),
-        meta,
-    )
+    return ContextSet.from_arrays(meta.get("task", path.stem.rsplit("-", 2)[0]), meta.get("scene", ""), arrays, meta)
 
 
 def list_context_files(task: str | None = None) -> list[ContextSet]:

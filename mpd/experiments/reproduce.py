@@ -24,19 +24,10 @@ import pandas as pd
 
 from mpd import stats
 from mpd.experiments.results import read_results
-from mpd.experiments.tracking import CELL_COLUMNS, _key
+from mpd.experiments.tracking import CELL_COLUMNS, SUMMARY_METRICS, _key
 
 # per-context metrics compared (not the times: they depend on the machine and its load)
-COMPARED = (
-    "success",
-    "fraction_valid",
-    "vendi",
-    "ee_pos_error",
-    "ee_ori_error_deg",
-    "smoothness",
-    "path_length",
-    "best_path_length",
-)
+COMPARED = (*(m for m in SUMMARY_METRICS if not m.startswith("time_")), "best_path_length")
 # inputs that fix a cell's contexts and data: a reproduction must keep them; the model may differ (training is
 # not bit-reproducible across CPU types) and the report says so
 FIXED_INPUTS = ("task_hash", "dataset_hash")

@@ -54,6 +54,8 @@ def random_model(task, kind: str, parametrization: str = "bspline", seed: int = 
     net = build_network(kind, task.dof, param.n_free, ctx_kind, small).eval().requires_grad_(False)
     lo, hi = task.robot.q_min.float(), task.robot.q_max.float()
     norms = {k: Normalizer(lo, hi) for k in context_keys(ctx_kind) if k in ("q_start", "q_goal")}
+    if task.ee_goal:
+        norms["ee_pos"] = Normalizer(-torch.ones(3), torch.ones(3))
     meta = {
         "task_name": task.name,
         "parametrization": parametrization,

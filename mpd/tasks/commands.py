@@ -159,6 +159,12 @@ chunk_size = {chunk}
 
 [checker]
 kind = "spheres"
+
+[split]
+# held-out shares of the contexts (the rest trains the models); the evaluation contexts are the held-out ones at
+# least the task's [context].min_start_goal_distance apart (`mpd data contexts`), so keep enough of them
+val = 0.1
+test = 0.2
 """
 
 
