@@ -254,7 +254,7 @@ def test_bad_definitions_give_one_clear_line(tmp_path, body, field):
 def test_cli_info_and_show(reference, tmp_path, monkeypatch):
     from click.testing import CliRunner
 
-    from mpd.data.commands import data
+    from mpd.cli.data import data
 
     path, lock, _, cache = reference
     monkeypatch.setenv("MPD_CACHE", str(cache))

@@ -1,6 +1,6 @@
 """The layers of docs/ARCHITECTURE.md, checked on the source: no module of ``mpd/`` imports (at the top or inside a
-function) a module of a higher layer, except the known uses listed in ``PENDING``, which the move of the CLI
-verbs into ``mpd/cli/`` removes; a pending entry that no longer occurs fails too, so the list only shrinks."""
+function) a module of a higher layer, except the known uses listed in ``PENDING`` (none today); a pending entry that
+no longer occurs fails too, so the list only shrinks."""
 
 from __future__ import annotations
 
@@ -25,18 +25,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("mpd.viz",),
     ("mpd.cli",),
 )
-# (importing module, imported layer's package): the verbs still living in their domain package's commands.py, and
-# the runner streaming Rerun recordings while it runs
-PENDING = {
-    ("mpd.tasks.commands", "mpd.collision"),
-    ("mpd.tasks.commands", "mpd.viz"),
-    ("mpd.data.commands", "mpd.viz"),
-    ("mpd.planners.commands", "mpd.metrics"),
-    ("mpd.planners.commands", "mpd.viz"),
-    ("mpd.models.commands", "mpd.experiments"),
-    ("mpd.experiments.commands", "mpd.viz"),
-    ("mpd.experiments.runner", "mpd.viz"),
-}
+# (importing module, imported layer's package): known exceptions; none since the verbs moved into mpd/cli/
+PENDING: set[tuple[str, str]] = set()
 
 
 def layer_of(module: str) -> tuple[int, str] | None:

@@ -135,7 +135,8 @@ def test_the_user_planner_runs_in_a_spec_beside_a_built_in_one(user_package, tmp
     monkeypatch.setenv("MPD_RUNS", str(tmp_path / "runs"))
     task = own_task(tmp_path / "mine")
     (tmp_path / "my-data.toml").write_text(
-        f'name = "my-data"\ntask = "{task}"\nn_contexts = 48\nseed = 0\nchunk_size = 24\n[checker]\nkind = "spheres"\n[split]\nval = 0.25\ntest = 0.5\n'
+        f'name = "my-data"\ntask = "{task}"\nn_contexts = 48\nseed = 0\nchunk_size = 24\n[checker]\nkind = "spheres"\n'
+        "[split]\nval = 0.25\ntest = 0.5\n"
     )
     spec = tmp_path / "spec.toml"
     spec.write_text(

@@ -120,7 +120,8 @@ def test_run_of_an_outside_task_writes_only_its_run_folder_and_the_cache(tmp_pat
     user = tmp_path / "user"
     task = own_task(user / "tasks")
     (user / "my-data.toml").write_text(
-        f'name = "my-data"\ntask = "{task}"\nn_contexts = 48\nseed = 0\nchunk_size = 24\n[checker]\nkind = "spheres"\n[split]\nval = 0.25\ntest = 0.5\n'
+        f'name = "my-data"\ntask = "{task}"\nn_contexts = 48\nseed = 0\nchunk_size = 24\n[checker]\nkind = "spheres"\n'
+        "[split]\nval = 0.25\ntest = 0.5\n"
     )
     spec = write_spec(user, str(task), "MyTask2D", methods=("gp-cost", "rrtconnect-cost"))
     inputs = _files(tmp_path)

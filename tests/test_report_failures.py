@@ -92,7 +92,7 @@ def test_report_fails_naming_the_figure_unless_keep_going(tmp_path):
 
 
 def test_report_command_exits_non_zero_with_one_line(tmp_path, monkeypatch):
-    from mpd.viz.commands import report
+    from mpd.cli.viz import report
 
     monkeypatch.setenv("MPD_RUNS", str(tmp_path))
     run = _run_with_unloadable_task(tmp_path)

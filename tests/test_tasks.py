@@ -12,10 +12,10 @@ from click.testing import CliRunner
 from conftest import TASKS
 
 from mpd.cli import cli
+from mpd.cli.tasks import tasks
 from mpd.envs import rot_z
 from mpd.schema import ConfigError
 from mpd.tasks import list_tasks, load_task, task_files
-from mpd.tasks.commands import tasks
 
 SIMPLE = "EnvSimple2D-RobotPointMass2D"
 
@@ -85,7 +85,7 @@ def test_cli_show_writes_a_figure(tmp_path):
 
 
 def test_show_is_seeded():
-    from mpd.tasks.commands import random_valid_configuration
+    from mpd.cli.tasks import random_valid_configuration
 
     t = load_task(SIMPLE)
     a = random_valid_configuration(t, seed=5)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpd.viz.commands import free_port, wait_http
+from mpd.cli.viz import free_port, wait_http
 
 TASK = "EnvSimple2D-RobotPointMass2D"
 REPO = Path(__file__).resolve().parents[1]

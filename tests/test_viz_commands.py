@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from mpd.viz.commands import free_port, report, start_viewer, stop_viewer, viewer_command, viewer_url, wait_http
+from mpd.cli.viz import free_port, report, start_viewer, stop_viewer, viewer_command, viewer_url, wait_http
 
 
 def test_viewer_command_and_url(tmp_path):

@@ -63,7 +63,11 @@ class Runner:
         progress: bool = True,
         mlflow: bool = False,
         record: bool = True,
+        recorder: Callable[[Path, str, dict, dict], None] | None = None,
     ):
+        """``recorder(run_dir, task_file, row, history)`` streams a recorded (cell, context) as soon as it is planned
+        (the CLI passes the Rerun recorder of ``mpd.viz``, a higher layer); without one, the histories are only
+        saved, and ``mpd report`` builds the recordings from them."""
         if executor not in ("local", "ray"):
             raise ValueError(f"unknown executor {executor!r} (local, ray)")
         self.spec = spec
@@ -76,6 +80,7 @@ class Runner:
         self.progress = progress
         self.mlflow = mlflow
         self.record = record
+        self.recorder = recorder
         from mpd.device import default_device
 
         dev = device or (spec.data.device if spec.data.device != "auto" else None)
@@ -272,14 +277,11 @@ class Runner:
             bar.close()
 
     def _record(self, res: UnitResult) -> None:
-        """Stream a recorded (cell, context) to its Rerun recording as soon as it is planned."""
-        if not self.record:
+        """Stream a recorded (cell, context) through the recorder, if any, as soon as it is planned."""
+        if not self.record or self.recorder is None:
             return
-        from mpd.viz.recording import record_history, recording_path
-
         try:
-            task = str(self.spec.task_file(res.row["task"]))
-            record_history(recording_path(self.run_dir, res.row), task, res.row, res.history)
+            self.recorder(self.run_dir, str(self.spec.task_file(res.row["task"])), res.row, res.history)
         except Exception as e:  # a recording must never cost the run its results
             log.warning("recording of %s context %s failed: %s", res.cell_key, res.row["context_index"], e)
 

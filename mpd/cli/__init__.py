@@ -1,4 +1,5 @@
-"""The ``mpd`` command. Each verb lives next to the code it drives (``mpd/<package>/commands.py``)."""
+"""The ``mpd`` command: the top layer. One module per verb group (``mpd/cli/<group>.py``); nothing below imports
+it."""
 
 from __future__ import annotations
 
@@ -13,16 +14,16 @@ from mpd.schema import ConfigError
 # (module, attribute) of each click command or group; imported lazily so that `mpd --help` stays fast and a
 # verb's heavy imports (torch, ompl, pybullet, rerun) are paid only when it runs.
 COMMANDS = {
-    "tasks": ("mpd.tasks.commands", "tasks"),
-    "data": ("mpd.data.commands", "data"),
-    "train": ("mpd.models.commands", "train"),
-    "models": ("mpd.models.commands", "models"),
-    "plan": ("mpd.planners.commands", "plan"),
-    "planners": ("mpd.planners.commands", "planners"),
-    "run": ("mpd.experiments.commands", "run"),
-    "runs": ("mpd.experiments.commands", "runs"),
-    "report": ("mpd.viz.commands", "report"),
-    "view": ("mpd.viz.commands", "view"),
+    "tasks": ("mpd.cli.tasks", "tasks"),
+    "data": ("mpd.cli.data", "data"),
+    "train": ("mpd.cli.models", "train"),
+    "models": ("mpd.cli.models", "models"),
+    "plan": ("mpd.cli.planners", "plan"),
+    "planners": ("mpd.cli.planners", "planners"),
+    "run": ("mpd.cli.experiments", "run"),
+    "runs": ("mpd.cli.experiments", "runs"),
+    "report": ("mpd.cli.viz", "report"),
+    "view": ("mpd.cli.viz", "view"),
 }
 
 
@@ -61,7 +62,3 @@ def main() -> None:
         sys.exit(e.exit_code)
     except click.exceptions.Exit as e:
         sys.exit(e.exit_code)
-
-
-if __name__ == "__main__":
-    main()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import sys
+from pathlib import Path
 
 import click
 
@@ -74,7 +75,14 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
         import torch
 
         torch.set_num_threads(threads)
-    runner = Runner(s, only_d or None, executor, workers, address, run_dir, fresh, device, mlflow=mlflow)
+    from mpd.viz.recording import record_history, recording_path
+
+    def recorder(run_dir: Path, task_file: str, row: dict, history: dict) -> None:
+        record_history(recording_path(run_dir, row), task_file, row, history)
+
+    runner = Runner(
+        s, only_d or None, executor, workers, address, run_dir, fresh, device, mlflow=mlflow, recorder=recorder
+    )
     if not runner.cells:
         raise ConfigError(s.path, "--only", "no cell matches")
     if dry_run:
