@@ -152,7 +152,9 @@ def test_the_user_planner_runs_in_a_spec_beside_a_built_in_one(user_package, tmp
         dataset = "my-data.toml"
         """)
     )
-    run = Runner(load_spec(spec), progress=False).run()
+    from mpd.viz.recording import stream_unit
+
+    run = Runner(load_spec(spec), progress=False, recorder=stream_unit).run()  # the recorder `mpd run` streams with
     df = read_results(run)
     assert set(df["method"]) == {"gp-cost", EXAMPLE} and len(df) == 4
     ours = df[df["method"] == EXAMPLE]

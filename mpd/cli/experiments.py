@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import ast
 import sys
-from pathlib import Path
 
 import click
 
@@ -75,13 +74,10 @@ def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device,
         import torch
 
         torch.set_num_threads(threads)
-    from mpd.viz.recording import record_history, recording_path
-
-    def recorder(run_dir: Path, task_file: str, row: dict, history: dict) -> None:
-        record_history(recording_path(run_dir, row), task_file, row, history)
+    from mpd.viz.recording import stream_unit
 
     runner = Runner(
-        s, only_d or None, executor, workers, address, run_dir, fresh, device, mlflow=mlflow, recorder=recorder
+        s, only_d or None, executor, workers, address, run_dir, fresh, device, mlflow=mlflow, recorder=stream_unit
     )
     if not runner.cells:
         raise ConfigError(s.path, "--only", "no cell matches")

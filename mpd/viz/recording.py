@@ -531,3 +531,9 @@ __all__ = [
     "recording_path",
     "run_task",
 ]
+
+
+def stream_unit(run_dir: Path, task_file: str, row: Mapping, history: Mapping[str, np.ndarray]) -> None:
+    """The recorder a runner streams recorded (cell, context) units through (``Runner(recorder=stream_unit)``): the
+    unit's Rerun recording in ``run_dir/recordings/``."""
+    record_history(recording_path(run_dir, row), task_file, row, history)
