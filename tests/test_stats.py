@@ -64,7 +64,8 @@ def test_bootstrap_on_the_committed_table_cells():
             assert est.lo == est.hi == x[0]
             continue
         lo, hi = _direct(x, lambda s: s.mean(axis=-1))
-        # Monte Carlo error of a 2000-resample percentile on a few discrete values: up to 7.3 % of the half-width over the cells of the committed eval-2d-cpu run
+        # Monte Carlo error of a 2000-resample percentile on a few discrete values: up to 7.3 % of the half-width
+        # over the cells of the committed eval-2d-cpu run
         tol = 0.12 * (hi - lo) / 2
         assert est.lo == pytest.approx(lo, abs=tol) and est.hi == pytest.approx(hi, abs=tol)
 
