@@ -137,11 +137,17 @@ def _valid(task: Task, q: np.ndarray, extra_objects: bool, rotation_deg: float) 
         chk.close()
 
 
+def _ends_valid(task: Task, q_start: np.ndarray, q_goal: np.ndarray, extra_objects: bool, rotation_deg: float):
+    """Start and goal both valid in the scene: one checker, one batched check of both ends."""
+    v = _valid(task, np.concatenate([q_start, q_goal]), extra_objects, rotation_deg)
+    return v[: len(q_start)] & v[len(q_start) :]
+
+
 def task_contexts(task: Task, dataset, n: int, seed: int = 0) -> ContextSet:
     """The task's list of n held-out contexts (valid in the training scene, far enough apart)."""
     cand = held_out_candidates(task, dataset, seed)
     far = np.linalg.norm(cand["q_goal"] - cand["q_start"], axis=1) >= task.spec.context.min_start_goal_distance
-    ok = far & _valid(task, cand["q_start"], False, 0.0) & _valid(task, cand["q_goal"], False, 0.0)
+    ok = far & _ends_valid(task, cand["q_start"], cand["q_goal"], False, 0.0)
     keep = np.flatnonzero(ok)
     if len(keep) < n:
         raise ValueError(
@@ -182,9 +188,7 @@ def for_scene(base: ContextSet, task: Task, extra_objects: bool, rotation_deg: f
     if not extra_objects and not rotation_deg:
         keep = np.ones(len(base), dtype=bool)
     else:
-        keep = _valid(task, base.q_start, extra_objects, rotation_deg) & _valid(
-            task, base.q_goal, extra_objects, rotation_deg
-        )
+        keep = _ends_valid(task, base.q_start, base.q_goal, extra_objects, rotation_deg)
     arrays = {k: v[keep] for k, v in base.arrays().items()}
     meta = dict(base.meta, scene=scene, n_contexts=int(keep.sum()), n_skipped=int((~keep).sum()))
     meta["skipped_index"] = base.index[~keep].tolist()
