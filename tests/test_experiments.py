@@ -359,3 +359,62 @@ def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
         ec.load_context_file(bad)
     with pytest.raises(ValueError, match="usable held-out contexts"):
         ec.task_contexts(task, ds, 1000)
+
+
+# ------------------------------------------------------------------------------------------ training axes
+@pytest.mark.parametrize(
+    ("axis", "values", "where"),
+    [
+        ('"training.lr_schedul"', '["wsd"]', "axes.training.lr_schedul"),
+        ('"training.precision"', '["fp16"]', "axes.training.precision"),
+        ('"training.steps"', "[0]", "axes.training.steps"),
+        ('"training.lr"', '["fast"]', "axes.training.lr"),
+    ],
+)
+def test_bad_training_axes_name_the_axis(tmp_path, axis, values, where):
+    p = write_spec(tmp_path, "bad", f"{axis} = {values}\n")
+    with pytest.raises(ConfigError) as e:
+        load_spec(p)
+    assert str(p) in str(e.value) and where in str(e.value)
+
+
+def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
+    """`training.*` axes: each budget is its own model (wsd: the longer resumes from the shorter's stable phase), the
+    rows carry the model's steps and training time, methods without a model collapse the axes, and the report draws
+    the learning curves and writes the recipe table."""
+    from mpd.models.train import list_models
+    from mpd.viz.report import build_report
+
+    p = write_spec(
+        work,
+        "curves",
+        """
+        method = ["gp-cost", "dprior"]
+        "training.steps" = [20, 40]
+        "training.lr_schedule" = ["wsd"]
+        "training.precision" = ["bf16"]
+        "training.loss_weighting" = ["uniform", "min_snr"]
+        """,
+    )
+    p.write_text(p.read_text().replace('method = ["gp-cost"]\n', "", 1).replace("extra_objects = [false, true]", ""))
+    spec = load_spec(p)
+    cells = spec.cells()
+    assert len([c for c in cells if c.p["method"] == "gp-cost"]) == 1  # the training axes collapse without a model
+    assert len([c for c in cells if c.p["method"] == "dprior"]) == 4
+    run_dir = work / "runs" / "curves"
+    df = _run(p, run_dir, workers=2)
+    dp = df[df["method"] == "dprior"]
+    assert dp.groupby(["training.loss_weighting", "training.steps"])["model_id"].nunique().eq(1).all()
+    assert dp["model_id"].nunique() == 4 and set(dp["model_steps"]) == {20, 40}
+    assert (df.loc[df["method"] == "gp-cost", "model_id"] == "").all()
+    metas = {m["identity"]: m for m in list_models(TASK)}
+    for ident, g in dp.groupby("model_id"):
+        meta = metas[ident]
+        assert meta["training_spec"]["precision"] == "bf16" and meta["training_spec"]["lr_schedule"] == "wsd"
+        assert float(g["model_train_s"].iloc[0]) == pytest.approx(meta["wall_time_s"])
+        # the 40-step budget of each recipe resumed from the 20-step one's stable phase (step 16)
+        assert meta.get("resumed_from_trunk_step") == (16 if meta["step"] == 40 else None)
+    index = build_report(run_dir, recordings=False)
+    text = (index.parent / "training.md").read_text()
+    assert "loss_weighting=min_snr" in text and "loss_weighting=uniform" in text
+    assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000

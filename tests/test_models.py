@@ -545,3 +545,165 @@ def test_unnormalize_clips_to_the_data_range_and_the_gradient_is_that_of_the_cli
     g_raw = 2 * w * raw.detach()
     assert torch.allclose(norm.grad_to_normalized(g_raw, x.detach()), g_auto)
     assert torch.allclose(norm.grad_to_normalized(g_raw), g_raw * torch.tensor([2.0, 5.0], dtype=torch.float64))
+
+
+# --- training recipes: wsd trunks, min-SNR weighting, bf16, identity compatibility ------------------------------------
+def test_wsd_budget_resumed_from_a_trunk_equals_the_same_budget_trained_alone(tmp_path):
+    """A wsd model of 40 steps trained after a 20-step one resumes from the 20-step run's stable-phase snapshot (step
+    16) and ends bit-identical to the 40-step model trained from scratch in another cache."""
+    from mpd.models import train as tr
+
+    arrays = toy_arrays(n_val=4)
+    short = tiny_training(steps=20, lr_schedule="wsd", decay_fraction=0.2, warmup_steps=4, checkpoint_every=8)
+    long = dataclasses.replace(short, steps=40)
+    assert tr.stable_steps(short) == 16 and tr.stable_steps(long) == 32
+    key = tr.trunk_identity("data0", "diffusion", "bspline", {}, TINY, short, 3)
+    assert key == tr.trunk_identity("data0", "diffusion", "bspline", {}, TINY, long, 3)
+    assert key != tr.trunk_identity("data0", "diffusion", "bspline", {}, TINY, dataclasses.replace(long, lr=2e-3), 3)
+    train_model(arrays, "diffusion", TINY, short, seed=3, progress=False, cache=tmp_path / "a")
+    snaps = sorted(p.name for p in (tmp_path / "a" / "models" / "Toy" / "trunks").glob("*/step-*.pt"))
+    assert snaps == ["step-000000008.pt", "step-000000016.pt"]  # every checkpoint_every and the stable end
+    via_trunk = read_checkpoint(
+        train_model(arrays, "diffusion", TINY, long, seed=3, progress=False, cache=tmp_path / "a")
+    )
+    alone = read_checkpoint(train_model(arrays, "diffusion", TINY, long, seed=3, progress=False, cache=tmp_path / "b"))
+    assert via_trunk["resumed_from_trunk_step"] == 16 and "resumed_from_trunk_step" not in alone
+    for key in ("weights", "ema_weights"):
+        assert all(torch.equal(alone[key][k], via_trunk[key][k]) for k in alone[key])
+    assert [h["train_loss"] for h in alone["history"]] == [h["train_loss"] for h in via_trunk["history"]]
+
+
+def test_wsd_learning_rate_is_flat_then_decays_to_the_floor():
+    from mpd.models.train import learning_rate
+
+    ts = TrainingSpec(batch_size=8, steps=100, lr=1e-3, lr_schedule="wsd", warmup_steps=10, decay_fraction=0.3)
+    assert learning_rate(ts, 0) == pytest.approx(1e-4)
+    assert all(learning_rate(ts, s) == pytest.approx(1e-3) for s in range(9, 70))
+    lrs = [learning_rate(ts, s) for s in range(70, 100)]
+    assert all(a > b for a, b in zip(lrs, lrs[1:])) and lrs[-1] == pytest.approx(1e-3 * ts.lr_min_ratio)
+    assert lrs[0] == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi / 30))))
+
+
+def test_min_snr_loss_weights_each_sample_by_min_snr_over_snr():
+    """The weighted loss recomputed by hand from the same draws (t and noise from a generator of the same seed)."""
+    from mpd.models.diffusion import q_sample, randint, randn
+
+    torch.manual_seed(0)
+    net = DiffusionModel(2, 8, "goal_joint_position", TINY)
+    x0 = torch.rand(64, 8, 2) * 2 - 1
+    ctx = {"q_start": torch.rand(64, 2), "q_goal": torch.rand(64, 2)}
+    got = net.loss(x0, ctx, torch.Generator().manual_seed(5), weighting="min_snr", min_snr_gamma=2.0)
+    g = torch.Generator().manual_seed(5)
+    t = randint(100, (64,), g, x0.device)
+    noise = randn((64, 8, 2), g, x0.device, x0.dtype)
+    abar = torch.as_tensor(net.schedule.tables["alphas_cumprod"], dtype=torch.float32)[t]
+    snr = abar / (1 - abar)
+    w = torch.minimum(snr, torch.full_like(snr, 2.0)) / snr
+    err = ((net(q_sample(x0, t, noise, net.schedule), t, ctx) - noise) ** 2).mean((1, 2))
+    assert torch.allclose(got, (w * err).mean(), rtol=1e-5)
+    assert (w < 1).any() and (w == 1).any()  # both regimes are in the batch
+    uniform = net.loss(x0, ctx, torch.Generator().manual_seed(5))
+    assert torch.allclose(uniform, err.mean(), rtol=1e-5)
+
+
+def test_bf16_training_is_close_to_fp32_and_has_its_own_identity(tmp_path):
+    arrays = toy_arrays(n_val=4)
+    fp32 = tiny_training(steps=20)
+    bf16 = dataclasses.replace(fp32, precision="bf16")
+    a = read_checkpoint(train_model(arrays, "diffusion", TINY, fp32, seed=2, progress=False, cache=tmp_path))
+    b = read_checkpoint(train_model(arrays, "diffusion", TINY, bf16, seed=2, progress=False, cache=tmp_path))
+    assert a["identity"] != b["identity"]
+    assert all(v.dtype == torch.float32 for v in b["weights"].values())
+    diffs = [float((a["weights"][k] - b["weights"][k]).abs().max()) for k in a["weights"]]
+    assert 0 < max(diffs) < 0.05  # bf16 changes the arithmetic, not the training (lr 1e-3, 20 steps)
+    assert abs(a["history"][-1]["train_loss"] - b["history"][-1]["train_loss"]) < 0.1
+
+
+def test_fields_added_to_the_training_spec_keep_older_identities():
+    """The identity of a spec at the defaults of the later fields is the hash of the spec without them (the form every
+    model trained before them was stored under)."""
+    from mpd.models.train import LATER_TRAINING_FIELDS, NETWORK_VERSION, model_identity
+    from mpd.schema import stable_hash, to_dict
+
+    ts = TrainingSpec(batch_size=128, steps=12000, lr=1e-3, lr_schedule="cosine", warmup_steps=200)
+    old_form = {k: v for k, v in to_dict(ts).items() if k not in LATER_TRAINING_FIELDS}
+    expected = stable_hash("h", "diffusion", "bspline", {}, TINY, old_form, 0, {"network_version": NETWORK_VERSION})
+    assert model_identity("h", "diffusion", "bspline", {}, TINY, ts, 0) == expected
+    for change in ({"precision": "bf16"}, {"loss_weighting": "min_snr"}, {"decay_fraction": 0.1}):
+        assert model_identity("h", "diffusion", "bspline", {}, TINY, dataclasses.replace(ts, **change), 0) != expected
+
+
+@pytest.mark.parametrize(
+    "field, value", [("lr_schedule", "linear"), ("decay_fraction", 1.5), ("precision", "fp16"), ("min_snr_gamma", 0)]
+)
+def test_bad_training_values_are_named(field, value, tmp_path):
+    with pytest.raises(ValueError, match=f"training.{field}"):
+        train_model(toy_arrays(), "diffusion", TINY, tiny_training(**{field: value}), progress=False, cache=tmp_path)
+
+
+# --- shipped priors -----------------------------------------------------------------------------------------------
+def test_shipped_prior_is_found_by_identity_verified_and_reproduced_bit_for_bit(tmp_path, monkeypatch):
+    """Ship a trained model, then a fresh cache gets it without training (same bytes, the lock's hash), and training
+    with shipped=False reproduces its EMA weights bit for bit (same CPU type)."""
+    from mpd.models import shipped
+    from mpd.schema import file_sha256
+
+    monkeypatch.setenv("MPD_PRIORS", str(tmp_path / "priors"))
+    arrays = toy_arrays(n_val=4)
+    spec = tiny_training(steps=20)
+    trained = train_model(arrays, "diffusion", TINY, spec, seed=4, progress=False, cache=tmp_path / "a")
+    path = shipped.ship(trained, tmp_path / "priors")
+    lock = json.loads(path.with_name(path.name.replace(".pt", ".lock.json")).read_text())
+    meta = json.loads((trained.parent / "meta.json").read_text())
+    assert lock["sha256"] == file_sha256(path) and lock["identity"] == meta["identity"] and lock["steps"] == 20
+    for key in ("dataset_hash", "task_hash", "training_spec", "seed", "wall_time_s", "cpu", "git_commit"):
+        assert lock[key] not in (None, "") or key == "git_commit"
+    assert path.stat().st_size < 0.6 * trained.stat().st_size  # EMA weights once: no second copy, no optimizer
+
+    calls, original = [], train_module.make_optimizer
+    monkeypatch.setattr(train_module, "make_optimizer", lambda *a, **k: calls.append(1) or original(*a, **k))
+    got = train_model(arrays, "diffusion", TINY, spec, seed=4, progress=False, cache=tmp_path / "b")
+    assert not calls, "a shipped prior must not be trained"
+    assert file_sha256(got) == lock["sha256"]
+    assert json.loads((got.parent / "meta.json").read_text())["source"] == "shipped"
+    a, b = load_model(trained), load_model(got)
+    assert all(torch.equal(x, y) for x, y in zip(a.network.state_dict().values(), b.network.state_dict().values()))
+    monkeypatch.setattr(train_module, "make_optimizer", original)
+    again = train_model(arrays, "diffusion", TINY, spec, seed=4, progress=False, cache=tmp_path / "c", shipped=False)
+    assert json.loads((again.parent / "meta.json").read_text())["source"] == "trained"
+    shipped_ema = torch.load(path, weights_only=True)["ema_weights"]
+    retrained = read_checkpoint(again)["ema_weights"]
+    assert all(torch.equal(shipped_ema[k], retrained[k]) for k in shipped_ema)
+
+
+def test_a_corrupted_shipped_prior_is_detected_and_retrained(tmp_path, monkeypatch, capfd):
+    from mpd.models import shipped
+
+    monkeypatch.setenv("MPD_PRIORS", str(tmp_path / "priors"))
+    arrays = toy_arrays(n_val=4)
+    spec = tiny_training(steps=10)
+    trained = train_model(arrays, "diffusion", TINY, spec, progress=False, cache=tmp_path / "a")
+    path = shipped.ship(trained, tmp_path / "priors")
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte inside the weights
+    path.write_bytes(bytes(data))
+    assert shipped.verify(path)[1].startswith("sha256")
+    got = train_model(arrays, "diffusion", TINY, spec, progress=False, cache=tmp_path / "b")
+    assert "is not used" in capfd.readouterr().err
+    meta = json.loads((got.parent / "meta.json").read_text())
+    assert meta["source"] == "trained" and not (got.read_bytes() == bytes(data))
+    (tmp_path / "b2").mkdir()
+    assert shipped.install("Toy", "diffusion", "bspline", meta["identity"], tmp_path / "b2") is None
+
+
+def test_bundled_shipped_priors_verify_against_their_locks():
+    """Every committed prior matches its lock file (sha256 and size), is within the size limit, and loads."""
+    from mpd.models import shipped
+
+    files = sorted(shipped.BUNDLED.glob("*/*.pt"))
+    for path in files:
+        lock, why = shipped.verify(path)
+        assert why is None, f"{path}: {why}"
+        assert path.stat().st_size <= 5 * 2**20, f"{path} is over 5 MB"
+        model = load_model(path, expect_task=lock["task_name"])
+        assert model.meta["identity"] == lock["identity"] == path.stem.rsplit("-", 1)[1]

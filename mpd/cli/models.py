@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 
@@ -28,8 +30,14 @@ def default_dataset(task_name: str) -> str:
 @click.option("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
 @click.option("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
 @click.option("--mlflow", is_flag=True, help="also log the training to the local MLflow store (mlflow extra)")
-def train(task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow):
-    """Train (or find, when this exact model exists) a prior; prints the checkpoint path."""
+@click.option(
+    "--no-shipped",
+    is_flag=True,
+    help="train even when a shipped prior of this identity exists (reproduces it; the cache copy is then retrained)",
+)
+def train(task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow, no_shipped):
+    """Train (or find, when this exact model exists in the cache or among the shipped priors) a prior; prints the
+    checkpoint path."""
     import dataclasses
 
     import torch
@@ -51,11 +59,9 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
     click.echo(f"dataset {name}")
     ds = load_dataset(name)
     arrays = training_arrays(task, ds, parametrization)
-    path = train_model(arrays, kind, task.spec.model, spec, seed=seed, device=device)
+    path = train_model(arrays, kind, task.spec.model, spec, seed=seed, device=device, shipped=not no_shipped)
     click.echo(f"model: {path}")
     if mlflow:
-        from pathlib import Path
-
         from mpd.experiments.tracking import log_model_to_mlflow
 
         log_model_to_mlflow(Path(path).parent / "meta.json")
@@ -93,3 +99,33 @@ def models_list(task_name):
         return
     with pd.option_context("display.width", 250, "display.max_colwidth", 120):
         click.echo(pd.DataFrame(rows).to_string(index=False))
+
+
+@models.command("ship")
+@click.argument("model_path", type=click.Path(exists=True))
+@click.option("--root", default=None, help="folder of shipped priors (default: the package's mpd/priors)")
+def models_ship(model_path, root):
+    """Write a trained model (a cache model.pt or its folder) as a shipped prior with its lock file."""
+    from mpd.models import shipped
+
+    path = shipped.ship(model_path, root or shipped.BUNDLED)
+    click.echo(f"shipped: {path} ({path.stat().st_size / 2**20:.2f} MB)")
+
+
+@models.command("shipped")
+def models_shipped():
+    """The shipped priors, each verified against its lock file (exit code 1 when one does not verify)."""
+    from mpd.models import shipped
+
+    rows = shipped.list_shipped()
+    if not rows:
+        click.echo("no shipped priors")
+        return
+    bad = 0
+    for r in rows:
+        state = "ok" if r["ok"] else f"CORRUPTED: {r['problem']}"
+        bad += not r["ok"]
+        steps = r.get("steps")
+        click.echo(f"{r.get('task_name', '?')}  {Path(r['path']).name}  steps={steps}  {state}")
+    if bad:
+        raise SystemExit(1)

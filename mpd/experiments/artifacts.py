@@ -37,7 +37,10 @@ class Need:
     estimate_s: float = 0.0
 
     def describe(self) -> str:
-        state = "ready" if self.exists else f"to build ({self.detail}, ~{self.estimate_s / 60:.1f} min)"
+        if self.exists:
+            state = "ready (shipped prior)" if self.detail == "shipped" else "ready"
+        else:
+            state = f"to build ({self.detail}, ~{self.estimate_s / 60:.1f} min)"
         return f"{self.kind:8s} {self.task}: {self.name}: {state}"
 
 
@@ -48,6 +51,12 @@ class ModelArtifact:
     identity: str
     path: Path
     sha256: str
+    steps: int = 0
+    wall_time_s: float = 0.0  # training wall time, stable-phase trunk included (the cost of this model alone)
+    training: tuple = ()  # the spec's training overrides that made it
+    # where the run got it: "cache" (there before the run), "shipped" (a verified shipped prior, mpd/priors) or
+    # "trained" (trained by this run)
+    source: str = "trained"
 
 
 @dataclass
@@ -60,25 +69,27 @@ class TaskArtifacts:
     # (lo, hi) per joint of the training split's free B-spline control points: the normalized space of the
     # planners without a model, as the authors' baselines use the dataset's normalizer
     data_range: tuple[list[float], list[float]] | None = None
-    models: dict[tuple[str, str], ModelArtifact] = field(default_factory=dict)
+    # (kind, parametrization, training overrides) -> model
+    models: dict[tuple[str, str, tuple], ModelArtifact] = field(default_factory=dict)
 
     def contexts_for(self, params: dict) -> ContextSet:
         from mpd.data.eval_contexts import scene_name
 
         return self.contexts[scene_name(bool(params["extra_objects"]), float(params["rotation_deg"] or 0.0))]
 
-    def model_for(self, method: str, parametrization: str) -> ModelArtifact | None:
+    def model_for(self, method: str, parametrization: str, training: tuple = ()) -> ModelArtifact | None:
         from mpd.planners import get_planner_class
 
         kind = get_planner_class(method).model_kind
-        return None if kind is None else self.models[(kind, parametrization)]
+        return None if kind is None else self.models[(kind, parametrization, tuple(training))]
 
     def summary(self) -> dict:
         return {
             "task_hash": self.task_hash,
             "dataset_id": self.dataset_id,
             "dataset_hash": self.dataset_hash,
-            "models": {f"{k}-{p}": m.identity for (k, p), m in self.models.items()},
+            "models": {_model_label(k, p, tr): m.identity for (k, p, tr), m in self.models.items()},
+            "model_sources": {_model_label(k, p, tr): m.source for (k, p, tr), m in self.models.items()},
             "contexts": {
                 scene: {
                     "sha256": cs.hash,
@@ -93,7 +104,12 @@ class TaskArtifacts:
         }
 
 
-def _model_kinds(cells, task_name: str) -> set[tuple[str, str]]:
+def _model_label(kind: str, parametrization: str, training: tuple) -> str:
+    extra = "".join(f",{k}={v}" for k, v in training)
+    return f"{kind}-{parametrization}" + (f"[{extra[1:]}]" if extra else "")
+
+
+def _model_kinds(cells, task_name: str) -> set[tuple[str, str, tuple]]:
     from mpd.planners import get_planner_class
 
     out = set()
@@ -103,11 +119,12 @@ def _model_kinds(cells, task_name: str) -> set[tuple[str, str]]:
             continue
         kind = get_planner_class(p["method"]).model_kind
         if kind is not None:
-            out.add((kind, p["parametrization"] or "bspline"))
+            out.add((kind, p["parametrization"] or "bspline", c.training_overrides()))
     return out
 
 
-def training_settings(task: Task, ts):
+def training_settings(task: Task, ts, overrides: tuple = ()):
+    """The task's training profile of the spec, with the spec's ``train_steps`` and a cell's ``training.*`` values."""
     spec = task.training(ts.profile)
     if ts.train_steps is not None:
         spec = dataclasses.replace(
@@ -116,7 +133,7 @@ def training_settings(task: Task, ts):
             checkpoint_every=min(spec.checkpoint_every, ts.train_steps),
             val_every=min(spec.val_every, ts.train_steps),
         )
-    return spec
+    return dataclasses.replace(spec, **dict(overrides)) if overrides else spec
 
 
 def data_range(task: Task, dataset) -> tuple[list[float], list[float]]:
@@ -132,6 +149,7 @@ def needs(spec, cells) -> list[Need]:
     """What each task of the spec needs, and whether it exists (for the dry run)."""
     from mpd.data.definition import load_definition
     from mpd.data.generate import chunk_states
+    from mpd.models import shipped
     from mpd.models.train import model_dir, model_identity
     from mpd.trajectory import make_parametrization
 
@@ -145,15 +163,15 @@ def needs(spec, cells) -> list[Need]:
         rate = _PATHS_PER_S.get(task.robot.name, 2.0) * 2
         out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate))
         content = _content_hash(rd) if not bad else None
-        for kind, par in sorted(_model_kinds(cells, task_name)):
-            train = training_settings(task, ts)
+        for kind, par, tr in sorted(_model_kinds(cells, task_name), key=repr):
+            train = training_settings(task, ts, tr)
             steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults), 2.0)
             if content is None:
                 out.append(
                     Need(
                         "model",
                         task_name,
-                        f"{kind}/{par} (after the dataset)",
+                        f"{_model_label(kind, par, tr)} (after the dataset)",
                         False,
                         f"train {train.steps} steps",
                         train.steps / steps_s,
@@ -163,11 +181,14 @@ def needs(spec, cells) -> list[Need]:
             param = make_parametrization(task, par)
             ident = model_identity(content, kind, par, param.settings(), task.spec.model, train, 0)
             exists = (model_dir(task_name, kind, par, ident) / "model.pt").exists()
+            if not exists and shipped.find(task_name, kind, par, ident) is not None:
+                out.append(Need("model", task_name, f"{_model_label(kind, par, tr)} [{ident}]", True, "shipped"))
+                continue
             out.append(
                 Need(
                     "model",
                     task_name,
-                    f"{kind}/{par} [{ident}]",
+                    f"{_model_label(kind, par, tr)} [{ident}]",
                     exists,
                     f"train {train.steps} steps",
                     train.steps / steps_s,
@@ -208,14 +229,34 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
             contexts,
             data_range=data_range(task, ds),
         )
-        for kind, par in sorted(_model_kinds(cells, task_name)):
-            jobs.append(
-                (task_name, kind, par, training_arrays(task, ds, par), task.spec.model, training_settings(task, ts))
-            )
-    for (task_name, kind, par, *_), path in zip(jobs, train_models(jobs, workers, progress)):
+        arrays = {}
+        # wsd budgets of one recipe in increasing steps, so that each resumes from the stable phase of the one before
+        for kind, par, tr in sorted(_model_kinds(cells, task_name), key=lambda k: (repr(k[:2]), _steps_last(k[2]))):
+            if par not in arrays:
+                arrays[par] = training_arrays(task, ds, par)
+            jobs.append((task_name, kind, par, arrays[par], task.spec.model, training_settings(task, ts, tr), tr))
+    before = [_in_cache(j) for j in jobs]
+    for (task_name, kind, par, *_, tr), path, cached in zip(jobs, train_models(jobs, workers, progress), before):
         meta = json.loads((path.parent / "meta.json").read_text())
-        out[task_name].models[(kind, par)] = ModelArtifact(kind, par, meta["identity"], path, file_sha256(path))
+        source = "cache" if cached else meta.get("source", "trained")
+        out[task_name].models[(kind, par, tr)] = ModelArtifact(
+            kind, par, meta["identity"], path, file_sha256(path), int(meta["step"]), float(meta["wall_time_s"]), tr,
+            source,
+        )  # fmt: skip
     return out
+
+
+def _in_cache(job) -> bool:
+    from mpd.models.train import model_dir, model_identity
+
+    task_name, kind, par, arrays, ms, ts, _ = job
+    ident = model_identity(arrays.dataset_hash, kind, par, arrays.parametrization_settings, ms, ts, 0)
+    return (model_dir(task_name, kind, par, ident) / "model.pt").is_file()
+
+
+def _steps_last(training: tuple) -> tuple:
+    d = dict(training)
+    return (repr(sorted((k, v) for k, v in d.items() if k != "steps")), d.get("steps", 0))
 
 
 def _train_job(job, progress: bool, threads: int | None) -> Path:
@@ -225,28 +266,49 @@ def _train_job(job, progress: bool, threads: int | None) -> Path:
 
     if threads:
         torch.set_num_threads(threads)
-    _, kind, _, arrays, model_spec, train_spec = job
+    _, kind, _, arrays, model_spec, train_spec, _ = job
     return Path(train_model(arrays, kind, model_spec, train_spec, seed=0, progress=progress))
+
+
+def _train_chain(chain: list, progress: bool, threads: int | None) -> list[Path]:
+    return [_train_job(j, progress, threads) for j in chain]
+
+
+def _chain_key(job) -> tuple:
+    """Jobs of one key train one after the other in one process: the wsd budgets of one recipe (shortest first, each
+    resuming from the stable phase of the one before); every other job is a chain of its own."""
+    task_name, kind, par, _, _, ts, _ = job
+    if ts.lr_schedule != "wsd":
+        return (id(job),)
+    rest = {k: v for k, v in dataclasses.asdict(ts).items() if k not in ("steps", "decay_fraction")}
+    return (task_name, kind, par, repr(sorted(rest.items())))
 
 
 def train_models(jobs: list, workers: int, progress: bool) -> list[Path]:
     """Train the missing models, several at once (one process and one thread each) when workers allow: on a small
-    CPU two single-threaded trainings finish in about the time of one two-threaded training."""
+    CPU two single-threaded trainings finish in about the time of one two-threaded training. The wsd budgets of one
+    recipe form a chain that runs in one worker, in increasing steps."""
+    from mpd.models import shipped
     from mpd.models.train import model_dir, model_identity
 
-    def exists(job) -> bool:
-        task_name, kind, par, arrays, ms, ts = job
+    def exists(job) -> bool:  # in the cache, or a shipped prior that train_model will install without training
+        task_name, kind, par, arrays, ms, ts, _ = job
         ident = model_identity(arrays.dataset_hash, kind, par, arrays.parametrization_settings, ms, ts, 0)
-        return (model_dir(task_name, kind, par, ident) / "model.pt").is_file()
+        if (model_dir(task_name, kind, par, ident) / "model.pt").is_file():
+            return True
+        return shipped.find(task_name, kind, par, ident) is not None
 
-    missing = [j for j in jobs if not exists(j)]
-    n = min(max(1, workers), len(missing))
+    chains: dict[tuple, list] = {}
+    for j in sorted((j for j in jobs if not exists(j)), key=lambda j: j[5].steps):
+        chains.setdefault(_chain_key(j), []).append(j)
+    n = min(max(1, workers), len(chains))
     if n <= 1:
-        return [_train_job(j, progress, None) for j in jobs]
+        paths = {id(j): _train_job(j, progress, None) for j in sorted(jobs, key=lambda j: j[5].steps)}
+        return [paths[id(j)] for j in jobs]
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
-        futures = {id(j): pool.submit(_train_job, j, progress, 1) for j in missing}
-        done = {k: f.result() for k, f in futures.items()}
+        futures = [(chain, pool.submit(_train_chain, chain, progress, 1)) for chain in chains.values()]
+        done = {id(j): path for chain, f in futures for j, path in zip(chain, f.result())}
     return [done[id(j)] if id(j) in done else _train_job(j, progress, None) for j in jobs]

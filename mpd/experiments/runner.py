@@ -212,7 +212,7 @@ class Runner:
             task_art = resolved[p["task"]]
             contexts = task_art.contexts_for(p)
             done = store.done(cell.key)
-            model = task_art.model_for(p["method"], p["parametrization"] or "bspline")
+            model = task_art.model_for(p["method"], p["parametrization"] or "bspline", cell.training_overrides())
             prov = dict(
                 base,
                 task_hash=task_art.task_hash,
@@ -220,6 +220,8 @@ class Runner:
                 dataset_hash=task_art.dataset_hash,
                 model_id=model.identity if model else "",
                 model_hash=model.sha256 if model else "",
+                model_steps=model.steps if model else 0,
+                model_train_s=model.wall_time_s if model else 0.0,
                 contexts_hash=contexts.hash,
                 contexts_source=contexts.meta.get("source", ""),
                 context_seed=contexts.meta.get("context_seed", -1),

@@ -59,6 +59,9 @@ DEFAULTS: dict[str, Any] = {
     "rotation_deg": 0.0,
 }
 PLANNER_PREFIX = "planner."
+# any field of the task's training profile is an axis too ("training.steps", "training.lr", ...): each value trains
+# (or finds) its own model, the profile with that field replaced; methods without a model collapse these axes
+TRAINING_PREFIX = "training."
 
 
 @dataclass(frozen=True)
@@ -106,6 +109,12 @@ class Cell:
 
     def planner_overrides(self) -> dict[str, Any]:
         return {k[len(PLANNER_PREFIX) :]: v for k, v in self.params if k.startswith(PLANNER_PREFIX) and v is not None}
+
+    def training_overrides(self) -> tuple[tuple[str, Any], ...]:
+        """The training-profile fields this cell replaces, sorted (a hashable key of the cell's model)."""
+        return tuple(
+            (k[len(TRAINING_PREFIX) :], v) for k, v in self.params if k.startswith(TRAINING_PREFIX) and v is not None
+        )
 
     def label(self) -> str:
         return ", ".join(f"{k}={v}" for k, v in self.params if v is not None)
@@ -164,6 +173,10 @@ class Spec:
             for a in planner.unused_axes:
                 if a in p:
                     p[a] = None
+            if planner.model_kind is None:  # no model: the training axes do not apply
+                for a in p:
+                    if a.startswith(TRAINING_PREFIX):
+                        p[a] = None
             cell = Cell(tuple(sorted(p.items())))
             if cell.params not in seen:
                 seen.add(cell.params)
@@ -202,8 +215,11 @@ def _validate(spec: SpecFile, path) -> None:
             for v in values:
                 check_setting(name, v, path, f"axes.{axis}")
             continue
+        if axis.startswith(TRAINING_PREFIX):
+            _check_training_axis(axis, values, path)
+            continue
         if axis not in AXES:
-            allowed = ", ".join([*AXES, PLANNER_PREFIX + "<setting>"])
+            allowed = ", ".join([*AXES, PLANNER_PREFIX + "<setting>", TRAINING_PREFIX + "<field>"])
             raise ConfigError(path, f"axes.{axis}", f"unknown axis (allowed: {allowed})")
         for v in values:
             if axis == "method":
@@ -231,6 +247,31 @@ def _validate(spec: SpecFile, path) -> None:
         for k in ex:
             if k not in spec.axes and k not in DEFAULTS and k not in ("n_samples", "seed"):
                 raise ConfigError(path, f"exclude[{i}].{k}", "not an axis of this spec")
+
+
+def _check_training_axis(axis: str, values: list, path) -> None:
+    """A training axis names a TrainingSpec field, and each value has the field's type and an allowed value."""
+    from mpd.models.train import check_training_spec
+    from mpd.tasks.spec import TrainingSpec
+
+    name = axis[len(TRAINING_PREFIX) :]
+    fields = {f.name: f for f in dataclasses.fields(TrainingSpec)}
+    if name not in fields:
+        raise ConfigError(path, f"axes.{axis}", f"unknown training field (allowed: {', '.join(fields)})")
+    base = TrainingSpec(batch_size=1, steps=1)
+    kind = type(getattr(base, name))
+    for v in values:
+        ok = isinstance(v, kind) and not (isinstance(v, bool) and kind is not bool)
+        if kind is float and isinstance(v, int) and not isinstance(v, bool):
+            ok = True
+        if not ok:
+            raise ConfigError(path, f"axes.{axis}", f"{v!r} is not a {kind.__name__}")
+        if name in ("steps", "batch_size") and v < 1:
+            raise ConfigError(path, f"axes.{axis}", f"{v!r} must be at least 1")
+        try:
+            check_training_spec(dataclasses.replace(base, **{name: v}))
+        except ValueError as e:
+            raise ConfigError(path, f"axes.{axis}", str(e)) from None
 
 
 def _task_file(entry: str, spec_path: Path | None) -> Path:

@@ -310,13 +310,29 @@ class DiffusionModel(nn.Module):
         return self.unet(x_t, t, self.context_encoder(context))
 
     def loss(
-        self, x0: torch.Tensor, context: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+        self,
+        x0: torch.Tensor,
+        context: Mapping[str, torch.Tensor],
+        generator: torch.Generator | None = None,
+        weighting: Literal["uniform", "min_snr"] = "uniform",
+        min_snr_gamma: float = 5.0,
     ) -> torch.Tensor:
-        """MSE between the true and the predicted noise, t ~ U{0..N-1}."""
+        """MSE between the true and the predicted noise, t ~ U{0..N-1}; with ``weighting="min_snr"`` each sample's
+        squared error is weighted by ``min(SNR_t, gamma) / SNR_t``, SNR_t = abar_t / (1 - abar_t) (Hang et al.
+        2023, the epsilon form). The random draws are the same for both weightings."""
         b = x0.shape[0]
         t = randint(self.n_diffusion_steps, (b,), generator, x0.device)
         noise = randn(tuple(x0.shape), generator, x0.device, x0.dtype)
-        return F.mse_loss(self(q_sample(x0, t, noise, self.schedule), t, context), noise)
+        pred = self(q_sample(x0, t, noise, self.schedule), t, context)
+        if weighting == "uniform":
+            return F.mse_loss(pred.float(), noise)
+        if weighting != "min_snr":
+            raise ValueError(f"unknown loss weighting {weighting!r} (known: uniform, min_snr)")
+        abar = self.schedule.table("alphas_cumprod", x0)[t]
+        snr = abar / (1 - abar)
+        w = snr.clamp(max=min_snr_gamma) / snr
+        per_sample = (pred.float() - noise).pow(2).flatten(1).mean(1)
+        return (w * per_sample).mean()
 
     def sample(self, context: Mapping[str, torch.Tensor], n: int, **kwargs) -> torch.Tensor | tuple:
         """Unguided samples (normalized space); keywords as :func:`sample`."""

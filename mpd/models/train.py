@@ -46,7 +46,7 @@ from mpd.models.context import UNNORMALIZED_KEYS
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
 from mpd.models.normalizer import Normalizer
 from mpd.paths import cache_dir
-from mpd.provenance import provenance
+from mpd.provenance import cpu_model, provenance
 from mpd.schema import ConfigError, stable_hash, to_dict
 from mpd.tasks.spec import ModelSpec, TrainingSpec
 
@@ -55,6 +55,21 @@ LOG_EVERY = 50  # steps between progress-bar updates (each one synchronizes the 
 # Bumped whenever the networks or their losses change, so that a checkpoint of an older architecture is never
 # reused under a new one (2: context MLPs with n_layers + 1 hidden layers, the authors' CVAE layout and loss).
 NETWORK_VERSION = 2
+
+
+# TrainingSpec fields added after NETWORK_VERSION 2: they enter a model's identity only when they differ from their
+# defaults, so that the models trained before they existed keep their identity (and their cache folder)
+LATER_TRAINING_FIELDS = ("decay_fraction", "loss_weighting", "min_snr_gamma", "precision")
+
+
+def training_identity(ts: TrainingSpec) -> dict[str, Any]:
+    """The training spec as it enters a model's identity (see LATER_TRAINING_FIELDS)."""
+    d = to_dict(ts)
+    defaults = to_dict(TrainingSpec(batch_size=ts.batch_size, steps=ts.steps))
+    for name in LATER_TRAINING_FIELDS:
+        if d[name] == defaults[name]:
+            del d[name]
+    return d
 
 
 def model_identity(
@@ -72,10 +87,37 @@ def model_identity(
         parametrization,
         parametrization_settings,
         model_spec,
-        training_spec,
+        training_identity(training_spec),
         seed,
         {"network_version": NETWORK_VERSION},
     )
+
+
+def trunk_identity(
+    dataset_hash: str,
+    kind: str,
+    parametrization: str,
+    parametrization_settings: dict[str, Any],
+    model_spec: ModelSpec,
+    training_spec: TrainingSpec,
+    seed: int,
+) -> str:
+    """The identity of the stable phase of a ``wsd`` training: everything of the model's identity but the number of
+    steps and the decay fraction, which only act after the stable phase. Two wsd models of the same trunk are in the
+    same state at every step before either one's decay starts."""
+    ts = to_dict(training_identity(training_spec))
+    ts["steps"] = ts["decay_fraction"] = None
+    return stable_hash(
+        "trunk", dataset_hash, kind, parametrization, parametrization_settings, model_spec, ts, seed,
+        {"network_version": NETWORK_VERSION},
+    )  # fmt: skip
+
+
+def stable_steps(ts: TrainingSpec) -> int:
+    """Steps before a ``wsd`` run's decay starts (the whole run for the other schedules)."""
+    if ts.lr_schedule != "wsd":
+        return ts.steps
+    return ts.steps - round(ts.decay_fraction * ts.steps)
 
 
 def models_root(cache: str | Path | None = None) -> Path:
@@ -198,6 +240,49 @@ def _write_json_atomic(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def _latest_trunk_state(trunk_dir: Path, trunk_key: str, stable_end: int, device: torch.device) -> dict | None:
+    """The training state of the latest stable-phase snapshot of this trunk at or before ``stable_end`` (None when
+    there is none). A snapshot that does not read back, or is of another trunk, is skipped (and named)."""
+    if not trunk_dir.is_dir():
+        return None
+    snaps = sorted(
+        (int(p.stem.split("-")[1]), p) for p in trunk_dir.glob("step-*.pt") if p.stem.split("-")[1].isdigit()
+    )
+    for s, p in reversed(snaps):
+        if s > stable_end:
+            continue
+        try:
+            state = read_checkpoint(p, map_location=device)
+        except ConfigError as e:
+            tqdm.write(f"skipping trunk snapshot {p}: {e}")
+            continue
+        if state.get("trunk") != trunk_key or int(state["step"]) != s:
+            tqdm.write(f"skipping trunk snapshot {p}: it is not step {s} of trunk {trunk_key}")
+            continue
+        return state
+    return None
+
+
+def check_training_spec(ts: TrainingSpec) -> None:
+    """Values the trainer cannot use raise ValueError naming the field."""
+    checks = {
+        "lr_schedule": ts.lr_schedule in ("constant", "cosine", "wsd"),
+        "decay_fraction": 0.0 <= ts.decay_fraction <= 1.0,
+        "loss_weighting": ts.loss_weighting in ("uniform", "min_snr"),
+        "min_snr_gamma": ts.min_snr_gamma > 0,
+        "precision": ts.precision in ("fp32", "bf16"),
+        "lr_min_ratio": 0.0 <= ts.lr_min_ratio <= 1.0,
+        "ema_decay": 0.0 <= ts.ema_decay < 1.0,
+        "ema_every": ts.ema_every >= 1,
+        "val_every": ts.val_every >= 1,
+        "checkpoint_every": ts.checkpoint_every >= 1,
+        "warmup_steps": ts.warmup_steps >= 0,
+    }
+    bad = [k for k, ok in checks.items() if not ok]
+    if bad:
+        raise ValueError(f"training.{bad[0]} = {getattr(ts, bad[0])!r} is not allowed")
+
+
 # --- public API ------------------------------------------------------------------------------------------
 def train_model(
     arrays: TrainingArrays,
@@ -209,13 +294,15 @@ def train_model(
     progress: bool = True,
     cache: str | Path | None = None,
     stop_after: int | None = None,
+    shipped: bool = True,
 ) -> Path:
     """Train (or find) the model of this identity; return the path of its ``model.pt``.
 
     Returns at once when ``model.pt`` exists; resumes from ``last.pt`` when a previous run was interrupted
     (Ctrl-C saves ``last.pt`` before re-raising). ``cache`` is the root holding ``models/`` (default
     :func:`mpd.paths.cache_dir`). ``stop_after``: train at most this many steps in this call, save ``last.pt``
-    and return *its* path (time-sliced training; used by the resume test).
+    and return *its* path (time-sliced training; used by the resume test). ``shipped``: take the model from the
+    shipped priors (:mod:`mpd.models.shipped`, verified by hash) when one has this identity; False trains it.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r} (known: {', '.join(KINDS)})")
@@ -223,6 +310,7 @@ def train_model(
         raise TypeError("model_spec must be a ModelSpec and training_spec a TrainingSpec")
     if training_spec.steps < 1 or training_spec.batch_size < 1:
         raise ValueError(f"training needs steps >= 1 and batch_size >= 1, got {training_spec}")
+    check_training_spec(training_spec)
     arrays.validate()
     ts = training_spec
     identity = model_identity(
@@ -238,6 +326,12 @@ def train_model(
     final_path, last_path = out / MODEL_FILE, out / LAST_FILE
     if final_path.is_file():
         return final_path
+    if shipped and not last_path.is_file():
+        from mpd.models import shipped as shipped_priors
+
+        got = shipped_priors.install(arrays.task_name, kind, arrays.parametrization, identity, out)
+        if got is not None:
+            return got
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device(device) if device is not None else default_device()
 
@@ -252,10 +346,26 @@ def train_model(
     gen = torch.Generator(device=device).manual_seed(seed)
     step, wall, history = 0, 0.0, []
     running, running_n = torch.zeros((), device=device), 0  # training-loss sum since the last validation
+    trunk_dir = trunk_key = None
+    stable_end = stable_steps(ts)
+    if ts.lr_schedule == "wsd":
+        trunk_key = trunk_identity(
+            arrays.dataset_hash, kind, arrays.parametrization, arrays.parametrization_settings, model_spec, ts, seed
+        )
+        trunk_dir = models_root(cache) / arrays.task_name / "trunks" / f"{kind}-{arrays.parametrization}-{trunk_key}"
+    record["trunk"] = trunk_key
+    state = None
     if last_path.is_file():
         state = read_checkpoint(last_path, map_location=device)
         if state["identity"] != identity:
             raise ConfigError(last_path, "identity", f"is {state['identity']!r}, expected {identity!r} (foreign file)")
+        if "resumed_from_trunk_step" in state:
+            record["resumed_from_trunk_step"] = state["resumed_from_trunk_step"]
+    elif trunk_dir is not None:
+        state = _latest_trunk_state(trunk_dir, trunk_key, stable_end, device)
+        if state is not None:
+            record["resumed_from_trunk_step"] = int(state["step"])
+    if state is not None:
         net.load_state_dict(state["weights"])
         ema.load_state_dict(state["ema_weights"])
         opt.load_state_dict(state["optimizer"])
@@ -263,7 +373,7 @@ def train_model(
         step, wall, history = int(state["step"]), float(state["wall_time_s"]), list(state["history"])
         running, running_n = state["running_loss"].to(device), int(state["running_n"])
 
-    def save_last() -> None:
+    def save_last(path: Path = last_path) -> None:
         save_atomic(
             {
                 **record,
@@ -277,7 +387,7 @@ def train_model(
                 "running_loss": running,
                 "running_n": running_n,
             },
-            last_path,
+            path,
         )
 
     end = ts.steps if stop_after is None else min(ts.steps, step + max(stop_after, 0))
@@ -288,13 +398,16 @@ def train_model(
         total=ts.steps, initial=step, unit="step", disable=not progress, dynamic_ncols=True,
         desc=f"{kind} {arrays.task_name}", mininterval=1.0,
     )  # fmt: skip
+    loss_kwargs = {"weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma} if kind == "diffusion" else {}
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=ts.precision == "bf16")
     t0 = time.perf_counter()
     net.train()
     with _deferred_sigint() as interrupted:
         while step < end:
             idx = torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)
             xb, cb = train.batch(idx)
-            loss = net.loss(xb, cb, gen)
+            with autocast:
+                loss = net.loss(xb, cb, gen, **loss_kwargs)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if ts.grad_clip_norm > 0:
@@ -320,6 +433,11 @@ def train_model(
                 bar.update(step - bar.n)
             if step % ts.checkpoint_every == 0 and step < ts.steps:
                 save_last()
+            if trunk_dir is not None and step <= stable_end and (step % ts.checkpoint_every == 0 or step == stable_end):
+                snap = trunk_dir / f"step-{step:09d}.pt"
+                if not snap.is_file():  # a stable-phase state: every wsd budget of this trunk passes through it
+                    trunk_dir.mkdir(parents=True, exist_ok=True)
+                    save_last(snap)
             if interrupted():  # Ctrl-C: stop between two whole steps, so the resume is exact
                 save_last()
                 bar.close()
@@ -348,6 +466,8 @@ def train_model(
         n_val=len(val),
         n_parameters=sum(p.numel() for p in net.parameters()),
         device=str(device),
+        cpu=cpu_model(),
+        source="trained",
         steps=step,
         steps_per_s=(step - first_step) / elapsed if elapsed > 0 else None,
         final_train_loss=history[-1]["train_loss"] if history else None,
@@ -387,8 +507,14 @@ def learning_rate(ts: TrainingSpec, step: int) -> float:
     warm = min(1.0, (step + 1) / ts.warmup_steps) if ts.warmup_steps > 0 else 1.0
     if ts.lr_schedule == "constant":
         return ts.lr * warm
-    frac = min(1.0, step / max(ts.steps - 1, 1))
     floor = ts.lr_min_ratio
+    if ts.lr_schedule == "wsd":
+        start = stable_steps(ts)
+        if step < start:
+            return ts.lr * warm
+        frac = min(1.0, (step - start + 1) / max(ts.steps - start, 1))  # the last step is at the floor
+        return ts.lr * warm * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * frac)))
+    frac = min(1.0, step / max(ts.steps - 1, 1))
     return ts.lr * warm * (floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * frac)))
 
 
@@ -420,4 +546,7 @@ def steps_per_second(net: nn.Module, x: torch.Tensor, context: dict[str, torch.T
     return n_steps / (time.perf_counter() - t0)
 
 
-__all__ = ["list_models", "make_optimizer", "model_dir", "model_identity", "steps_per_second", "train_model"]
+__all__ = [
+    "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity", "stable_steps",
+    "steps_per_second", "train_model", "trunk_identity",
+]  # fmt: skip

@@ -161,10 +161,14 @@ class TrainingSpec:
     steps: int
     lr: float = 3e-4
     # "constant" (the paper and the authors) or "cosine": linear warm-up, then cosine decay to lr_min_ratio * lr, which
-    # gets a much lower loss out of the short CPU budgets of the `cpu` profiles
-    lr_schedule: Literal["constant", "cosine"] = "constant"
+    # gets a much lower loss out of the short CPU budgets of the `cpu` profiles; or "wsd" (warm-up, stable, decay):
+    # constant after the warm-up, then a cosine decay to lr_min_ratio * lr over the last decay_fraction of the steps.
+    # The stable part of a wsd run does not depend on `steps`, so a longer budget resumes from the stable-phase
+    # snapshot of a shorter one (mpd.models.train: "trunks"), which makes a learning curve cost about one training.
+    lr_schedule: Literal["constant", "cosine", "wsd"] = "constant"
     warmup_steps: int = 0
     lr_min_ratio: float = 0.1
+    decay_fraction: float = 0.2
     weight_decay: float = 0.01
     grad_clip_norm: float = 1.0
     ema_decay: float = 0.995
@@ -172,6 +176,14 @@ class TrainingSpec:
     ema_every: int = 10
     val_every: int = 1000
     checkpoint_every: int = 5000
+    # diffusion loss weighting over the noise levels: "uniform" (the paper) or "min_snr" (Hang et al. 2023:
+    # w_t = min(SNR_t, min_snr_gamma) / SNR_t for the epsilon loss, which stops the nearly clean levels dominating)
+    loss_weighting: Literal["uniform", "min_snr"] = "uniform"
+    min_snr_gamma: float = 5.0
+    # arithmetic of the training forward and backward passes: "fp32", or "bf16" autocast (weights, optimizer, EMA and
+    # the validation loss stay float32). bf16 runs on any CPU; it is faster where the CPU has bf16 instructions
+    # (AVX-512 BF16, AMX) or on a GPU, and the same setting gives the same model identity everywhere.
+    precision: Literal["fp32", "bf16"] = "fp32"
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ from mpd.viz.report_stats import (
     reproducibility,
 )
 from mpd.viz.report_tables import markdown_table, paper_table, summary_table, timing_table
+from mpd.viz.report_training import TRAINING_NOTE, has_curves, recipes_table
 
 log = logging.getLogger(__name__)
 
@@ -412,6 +413,13 @@ def build_report(
     _write(out / "paired.md", f"# MPD against each baseline: {info['run_id']}\n\n{PAIRED_NOTE}\n\n{paired}\n")
     _write(out / "reproducibility.md", repro_page)
     _write(out / "paper.md", f"# The paper's numbers beside ours: {info['run_id']}\n\n{paper}")
+    curves = has_curves(d)
+    if curves:
+        _write(
+            out / "training.md",
+            f"# Training recipes: {info['run_id']}\n\n{TRAINING_NOTE}\n\n{recipes_table(d)}\n\n"
+            "![learning curves](figures/learning_curves.png)\n",
+        )
     _write(
         out / "timing.md",
         f"# Timings: {info['run_id']}\n\nMean ± std over contexts; costs per gradient step.\n\n{timing}\n",
@@ -431,6 +439,7 @@ def build_report(
         "- [Reproducibility against a reference run](reproducibility.md)",
         "- [The paper's numbers beside ours](paper.md)",
         "- [Timings](timing.md)",
+        *(["- [Training recipes: learning curves and the recipe table](training.md)"] if curves else []),
         "",
     ]
     lines += [

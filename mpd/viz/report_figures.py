@@ -35,6 +35,7 @@ from mpd.viz.report_style import (
     set_note,
 )
 from mpd.viz.report_tables import cost_columns, gradient_calls
+from mpd.viz.report_training import learning_curve_figure
 from mpd.viz.scene import style
 
 
@@ -363,6 +364,12 @@ FIGURES = (
     ),
     FigureKind(
         "batch_size", "Time and success vs batch size", batch_size_figure, "a method run with several batch sizes"
+    ),
+    FigureKind(
+        "learning_curves",
+        "Prior quality vs training minutes, one line per recipe",
+        learning_curve_figure,
+        "cells at several training.steps",
     ),
 )
 

@@ -43,7 +43,9 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
 
 def _varying(d: pd.DataFrame) -> list[str]:
     """Variant axes (and planner.* axes) with more than one value in the run: they become table columns."""
-    cols = [a for a in VARIANT_AXES if a in d.columns] + sorted(c for c in d.columns if c.startswith("planner."))
+    cols = [a for a in VARIANT_AXES if a in d.columns] + sorted(
+        c for c in d.columns if c.startswith(("planner.", "training."))
+    )
     return [c for c in cols if d[c].astype(str).nunique() > 1]
 
 
