@@ -81,3 +81,57 @@ def test_training_step_batch512(benchmark, threads, horizon):
     benchmark.extra_info.update(threads=threads, horizon=horizon, batch=512, steps_per_s=1 / median)
     print(f"\nPanda training step (batch 512, H={horizon}, {threads} threads): {1 / median:.2f} steps/s")
     assert torch.isfinite(loss)
+
+
+# --- training throughput by precision: the 2-D networks (batch 128) and the Panda ones (batch 512) ------------------
+POINT_MASS = ModelSpec()  # the paper's 2-D sizes: (1, 2, 4) U-Net, dim 32, context dim 32
+CASES = {
+    # name: (spec, dof, horizon of free control points, context kind, batch)
+    "2d": (POINT_MASS, 2, 16, "goal_joint_position", 128),
+    "panda": (PANDA, DOF, 24, "goal_ee_pose", 512),
+}
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+@pytest.mark.parametrize("case", list(CASES))
+def test_training_steps_per_s_by_precision(benchmark, threads, case, precision):
+    """One training step as `train_model` runs it (forward under the profile's autocast, backward, grad clip, fused
+    AdamW): the steps/s of fp32 and bf16 side by side in one run, with the achieved GFLOP/s of each."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    spec, dof, horizon, kind, batch = CASES[case]
+    torch.manual_seed(0)
+    model = DiffusionModel(dof, horizon, kind, spec).train()
+    if kind == "goal_ee_pose":
+        x, ctx = panda_batch(batch, horizon)
+    else:
+        g0 = torch.Generator().manual_seed(0)
+        x = torch.rand(batch, horizon, dof, generator=g0) * 2 - 1
+        ctx = {"q_start": torch.rand(batch, dof, generator=g0), "q_goal": torch.rand(batch, dof, generator=g0)}
+    opt = make_optimizer(model, TrainingSpec(batch_size=batch, steps=1))
+    g = torch.Generator().manual_seed(0)
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16")
+
+    def step():
+        with autocast:
+            loss = model.loss(x, ctx, g)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        return loss
+
+    with FlopCounterMode(display=False) as fc:
+        step()
+    flops = fc.get_total_flops()
+    loss = benchmark.pedantic(step, rounds=8 if case == "2d" else 4, warmup_rounds=1)
+    median = benchmark.stats.stats.median
+    benchmark.extra_info.update(
+        case=case, precision=precision, threads=threads, batch=batch, horizon=horizon, steps_per_s=1 / median,
+        gflop_per_step=flops / 1e9, gflop_per_s=flops / 1e9 / median,
+    )  # fmt: skip
+    print(
+        f"\n{case} training step, {precision}, {threads} threads: {1 / median:.2f} steps/s, "
+        f"{flops / 1e9 / median:.0f} GFLOP/s"
+    )
+    assert torch.isfinite(loss)

@@ -14,7 +14,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from mpd.viz.report_data import TRAIN, fmt_estimate, interval, method_label, short_task, task_order
-from mpd.viz.report_style import SPARE_COLORS
+from mpd.viz.report_style import plain_log_ticks
 from mpd.viz.scene import style
 
 TRAINING_NOTE = (
@@ -22,6 +22,8 @@ TRAINING_NOTE = (
     "for success). `train [min]` is the model's training wall time, for a wsd budget including the stable phase it "
     "resumed from: the cost of that model trained alone on this machine."
 )
+# distinct at a glance, in print and for the common colour-vision deficiencies (Okabe-Ito)
+RECIPE_COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000")
 METRICS = (("success", "success [%]", 100.0, True), ("fraction_valid", "fraction valid [%]", 100.0, False))
 DIVERSITY = ("vendi", "diversity (Vendi)", 1.0, False)
 
@@ -71,7 +73,7 @@ def learning_curve_figure(d: pd.DataFrame) -> Figure | None:
         return None
     tasks = task_order(pts["task"].unique())
     recipes = sorted(pts["recipe"].unique())
-    colors = {r: SPARE_COLORS[i % len(SPARE_COLORS)] for i, r in enumerate(recipes)}
+    colors = {r: RECIPE_COLORS[i % len(RECIPE_COLORS)] for i, r in enumerate(recipes)}
     panels = (*METRICS, DIVERSITY)
     with style():
         fig = Figure(figsize=(3.0 * len(panels) + 0.4, 2.5 * len(tasks) + 0.9), layout="constrained")
@@ -99,12 +101,14 @@ def learning_curve_figure(d: pd.DataFrame) -> Figure | None:
                             )
                 if col != "vendi":
                     ax.set_ylim(-3, 103)
-                ax.set_xlabel("training wall time [min]")
+                ax.set_xscale("log")  # budgets double: a log axis spaces them evenly
+                plain_log_ticks(ax.xaxis)
+                ax.set_xlabel("training wall time [min] (log)")
                 ax.set_ylabel(label)
                 ax.set_title(f"{short_task(task)}: {label}", fontsize=8.5)
                 ax.grid(lw=0.3, color="0.88")
                 ax.set_axisbelow(True)
-        fig.legend(loc="outside lower center", ncol=min(3, len(recipes)), frameon=False, fontsize=7)
+        fig.legend(loc="outside lower center", ncol=1, frameon=False, fontsize=7)
     return fig
 
 
