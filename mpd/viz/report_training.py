@@ -105,7 +105,7 @@ def learning_curve_figure(d: pd.DataFrame) -> Figure | None:
                 plain_log_ticks(ax.xaxis)
                 ax.set_xlabel("training wall time [min] (log)")
                 ax.set_ylabel(label)
-                ax.set_title(f"{short_task(task)}: {label}", fontsize=8.5)
+                ax.set_title(f"{short_task(task)}\n{label}", fontsize=8.5)
                 ax.grid(lw=0.3, color="0.88")
                 ax.set_axisbelow(True)
         fig.legend(loc="outside lower center", ncol=1, frameon=False, fontsize=7)
