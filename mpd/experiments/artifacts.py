@@ -22,11 +22,10 @@ _PATHS_PER_S = {
     "RobotPlanar4Link": 8.0,
     "RobotPanda": 2.0,
 }
-# fp32 training steps/s by U-Net depth, one thread per model on a 2-core CPU at the cpu profiles' batch sizes: measured
-# 5.7/s for the (1, 2, 4) nets at batch 128 (two models side by side), ~2/s for the (1, 2, 4, 8) nets at batch 512;
-# bf16 autocast ran 1.8x as many (10.8/s, reports/recipe-study-2d)
-_STEPS_PER_S = {2: 8.0, 3: 5.7, 4: 2.0}
-_BF16_SPEEDUP = 1.8
+# training steps/s by U-Net depth, one thread per model on a 2-core CPU at the cpu profiles' batch sizes: measured
+# 8.4-10.8/s for the (1, 2, 4) nets at batch 128 (two bf16 models side by side, reports/recipe-study-2d; fp32 is within
+# 5 % at 1 thread), ~2/s for the (1, 2, 4, 8) nets at batch 512
+_STEPS_PER_S = {2: 12.0, 3: 9.5, 4: 2.0}
 
 
 @dataclass
@@ -168,7 +167,6 @@ def needs(spec, cells) -> list[Need]:
         for kind, par, tr in sorted(_model_kinds(cells, task_name), key=repr):
             train = training_settings(task, ts, tr)
             steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults), 2.0)
-            steps_s *= _BF16_SPEEDUP if train.precision == "bf16" else 1.0
             if content is None:
                 out.append(
                     Need(
