@@ -99,6 +99,10 @@ def synthetic_results(n_ctx: int = 5, seed: int = 0, small: bool = False) -> pd.
     if not small:
         rows += _rows(rng, batch, "rrtconnect-cost", n_ctx, extra=True, n=1, quality=0.6)
     rows += _rows(rng, SIMPLE, "mpd", n_ctx, extra=True, param="waypoints")
+    for steps in (3000, 6000):  # a learning curve: Dprior at two training budgets (training.* axes)
+        for r in _rows(rng, SIMPLE, "dprior", n_ctx, quality=0.3 + steps / 20000):
+            r.update({"cell_key": f"{r['cell_key']}-{steps}", "training.steps": steps, "model_train_s": steps / 10.0})
+            rows.append(r)
     return pd.DataFrame(rows)
 
 
