@@ -158,7 +158,9 @@ def view(run: str, web: bool, port: int, grpc_port: int | None, only: str | None
     code = 0
     # the viewer runs in its own session (a terminal's signals do not reach it), so every way out of this process
     # must stop it: Ctrl-C, SIGTERM, SIGHUP (a closed terminal) and exceptions all pass through `finally`
-    previous = {signal.SIGINT: signal.getsignal(signal.SIGINT)}
+    # SIGINT is set explicitly: a process started in the background of a non-interactive shell (nohup, `cmd &`,
+    # CI runners) inherits SIGINT ignored, and Python then leaves it ignored, so Ctrl-C / `kill -INT` did nothing
+    previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler)}
     previous.update({s: signal.signal(s, _raise_signal) for s in STOP_SIGNALS})
     try:
         proc = start_viewer(cmd)
