@@ -418,3 +418,89 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     text = (index.parent / "training.md").read_text()
     assert "loss_weighting=min_snr" in text and "loss_weighting=uniform" in text
     assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------------------------- shipped evaluation inputs
+def test_shipped_priors_and_digest_evaluate_without_generating_the_dataset(work, tmp_path, monkeypatch, capfd):
+    """A fresh cache with the dataset's digest and its model shipped: the run generates no dataset and trains
+    nothing, and its rows are the rows of the run that generated and trained them (timings aside). A digest that
+    does not match its record is named and not used."""
+    from mpd.data import digest
+    from mpd.data.dataset import load_dataset
+    from mpd.data.definition import load_definition
+    from mpd.data.generate import generate
+    from mpd.experiments.artifacts import data_range
+    from mpd.models import shipped
+    from mpd.models.train import list_models
+    from mpd.tasks import load_task
+
+    # a definition of its own, with the lock next to it that `mpd data generate` writes (and a repo commits)
+    (tmp_path / "dg.toml").write_text((work / "tiny0.toml").read_text().replace('name = "tiny0"', 'name = "dg"'))
+    spec = tmp_path / "dg-eval.toml"
+    spec.write_text(
+        textwrap.dedent(f"""
+        name = "dg-eval"
+        n_contexts = 4
+        n_samples = 16
+        seeds = [0]
+        record_contexts = 0
+        [axes]
+        task = ["{TASK}"]
+        method = ["gp-cost", "dprior"]
+        extra_objects = [false, true]
+        [tasks."{TASK}"]
+        dataset = "{tmp_path / "dg.toml"}"
+        profile = "cpu"
+        train_steps = 20
+        """)
+    )
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "a"))
+    monkeypatch.setenv("MPD_PRIORS", "none")
+    generate(load_definition(tmp_path / "dg.toml"), workers=1, progress=False)
+    assert (tmp_path / "dg.lock.json").is_file()
+    a = _run(spec, tmp_path / "runs" / "a")
+    man_a = json.loads((tmp_path / "runs" / "a" / "manifest.json").read_text())["artifacts"][TASK]
+    assert man_a["dataset_source"] == "cache" and set(man_a["model_sources"].values()) == {"trained"}
+    ds = load_dataset(tmp_path / "dg.toml", generate_missing=False)
+    task = load_task(TASK)
+    (model,) = list_models(TASK)
+    shipped.ship(model["path"], tmp_path / "priors")
+    dg_path = digest.write(task, ds, data_range(task, ds), tmp_path / "priors")
+
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "b"))
+    monkeypatch.setenv("MPD_PRIORS", str(tmp_path / "priors"))
+    text = Runner(load_spec(spec), run_dir=tmp_path / "runs" / "b").describe()
+    assert "not needed: its shipped digest" in text and "ready (shipped prior)" in text and "nothing to build" in text
+    b = _run(spec, tmp_path / "runs" / "b")
+    assert not load_definition(tmp_path / "dg.toml").data_dir.exists(), "the dataset was generated"
+    man_b = json.loads((tmp_path / "runs" / "b" / "manifest.json").read_text())["artifacts"][TASK]
+    assert man_b["dataset_source"] == "digest" and set(man_b["model_sources"].values()) == {"shipped"}
+    assert man_b["dataset_hash"] == man_a["dataset_hash"] and man_b["contexts"] == man_a["contexts"]
+    key = ["cell_key", "context_index"]
+    cols = [*METRIC_COLUMNS, "contexts_hash", "dataset_hash", "model_id", "plan_seed"]
+    pd.testing.assert_frame_equal(
+        a.sort_values(key).reset_index(drop=True)[key + cols], b.sort_values(key).reset_index(drop=True)[key + cols]
+    )
+
+    data = bytearray(dg_path.read_bytes())
+    data[-200] ^= 0xFF  # one flipped byte among the stored contexts
+    dg_path.write_bytes(bytes(data))
+    capfd.readouterr()
+    assert digest.find(TASK, "dg", man_a["dataset_hash"]) is None
+    assert f"dataset digest {dg_path}" in capfd.readouterr().err
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "c"))
+    text = Runner(load_spec(spec), run_dir=tmp_path / "runs" / "c").describe()
+    assert "dataset  " in text and "to build (plan 64 contexts" in text
+
+
+def test_eval_2d_cpu_on_a_fresh_clone_generates_and_trains_nothing(tmp_path, monkeypatch):
+    """The committed report of eval-2d-cpu reproduces from a fresh clone in minutes: its datasets' shipped digests
+    and its shipped priors cover every cell (an edit of a task file or of a training profile breaks this until
+    the digest and the priors are shipped again: `mpd data digest`, `mpd models ship`)."""
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MPD_RUNS", str(tmp_path / "runs"))
+    monkeypatch.delenv("MPD_PRIORS", raising=False)
+    needs = Runner(load_spec("eval-2d-cpu")).plan().needs
+    assert all(n.exists for n in needs), "\n".join(n.describe() for n in needs if not n.exists)
+    assert {n.detail for n in needs if n.kind == "dataset"} == {"digest"}
+    assert {n.detail for n in needs if n.kind == "model"} == {"shipped"}

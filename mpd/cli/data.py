@@ -226,3 +226,30 @@ def contexts(task_name, n, source, dataset, context_seed, extra_objects, rotatio
         else:
             np.savez(out, **cs.arrays())
         click.echo(f"exported {out}")
+
+
+@data.command()
+@click.argument("name")
+@click.option(
+    "--root",
+    type=click.Path(file_okay=False),
+    default=None,
+    help="Where to write it (default: the bundled mpd/priors, beside the shipped priors).",
+)
+def digest(name: str, root: str | None) -> None:
+    """Write the digest of a generated dataset NAME: its held-out rows, content hash and control-point range, all an
+    evaluation with shipped priors takes from it (then a fresh clone evaluates without generating the dataset)."""
+    from mpd.data import digest as dg
+    from mpd.data.dataset import load_dataset
+    from mpd.experiments.artifacts import data_range
+    from mpd.paths import SHIPPED_BUNDLED
+    from mpd.tasks import load_task
+
+    try:
+        ds = load_dataset(name, generate_missing=False)
+    except FileNotFoundError as e:
+        raise click.ClickException(str(e)) from None
+    task = load_task(ds.task)
+    path = dg.write(task, ds, data_range(task, ds), root or SHIPPED_BUNDLED)
+    d = dg.load(path)
+    click.echo(f"{path} ({path.stat().st_size / 1024:.0f} KiB): {len(d)} held-out rows, content {d.info['content_hash'][:16]}")

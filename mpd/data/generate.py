@@ -183,6 +183,22 @@ def _lock_chunks(rd: ResolvedDefinition) -> dict[int, str]:
     return {int(o["chunk"]): o["sha256"] for o in lock.get("outs", [])}
 
 
+def committed_lock(rd: ResolvedDefinition) -> dict | None:
+    """The committed lock file's record when it describes this identity, else None."""
+    try:
+        lock = json.loads(rd.lock_path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+    return lock if lock.get("identity") == rd.identity else None
+
+
+def committed_content_hash(rd: ResolvedDefinition) -> str | None:
+    """The content hash the committed lock file records for this identity (None without one): what generating the
+    dataset gives, since a generation reproduces every chunk byte for byte."""
+    lock = committed_lock(rd)
+    return lock.get("content_hash") if lock else None
+
+
 def chunk_states(rd: ResolvedDefinition, use_lock: bool = True) -> dict[int, str]:
     """Why each unfinished chunk is not usable ({} when the dataset is complete)."""
     expected = _lock_chunks(rd) if use_lock else {}

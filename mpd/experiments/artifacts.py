@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,7 +40,10 @@ class Need:
 
     def describe(self) -> str:
         if self.exists:
-            state = "ready (shipped prior)" if self.detail == "shipped" else "ready"
+            state = {
+                "shipped": "ready (shipped prior)",
+                "digest": "not needed: its shipped digest has the contexts and range, and every model is ready",
+            }.get(self.detail, "ready")
         else:
             state = f"to build ({self.detail}, ~{self.estimate_s / 60:.1f} min)"
         return f"{self.kind:8s} {self.task}: {self.name}: {state}"
@@ -72,6 +76,9 @@ class TaskArtifacts:
     data_range: tuple[list[float], list[float]] | None = None
     # (kind, parametrization, training overrides) -> model
     models: dict[tuple[str, str, tuple], ModelArtifact] = field(default_factory=dict)
+    # where the run got the dataset: "cache", "generated" (by this run) or "digest" (not generated: its shipped
+    # digest gave the contexts and the range, every model being in the cache or shipped; mpd.data.digest)
+    dataset_source: str = "cache"
 
     def contexts_for(self, params: dict) -> ContextSet:
         from mpd.data.eval_contexts import scene_name
@@ -89,6 +96,7 @@ class TaskArtifacts:
             "task_hash": self.task_hash,
             "dataset_id": self.dataset_id,
             "dataset_hash": self.dataset_hash,
+            "dataset_source": self.dataset_source,
             "models": {_model_label(k, p, tr): m.identity for (k, p, tr), m in self.models.items()},
             "model_sources": {_model_label(k, p, tr): m.source for (k, p, tr), m in self.models.items()},
             "contexts": {
@@ -146,13 +154,44 @@ def data_range(task: Task, dataset) -> tuple[list[float], list[float]]:
     return train.min(0).tolist(), train.max(0).tolist()
 
 
+def _model_identity(task: Task, ts, content_hash: str, kind: str, par: str, training: tuple) -> str:
+    """A model's identity from the dataset's content hash alone (no dataset loaded)."""
+    from mpd.models.train import model_identity
+    from mpd.trajectory import make_parametrization
+
+    settings = make_parametrization(task, par).settings()
+    return model_identity(content_hash, kind, par, settings, task.spec.model, training_settings(task, ts, training), 0)
+
+
+def _ready_model(task: Task, ts, content_hash: str, key: tuple) -> tuple[str, str] | None:
+    """(identity, "cache" | "shipped") when the model of ``key`` needs no training, else None."""
+    from mpd.models import shipped
+    from mpd.models.train import model_dir
+
+    kind, par, tr = key
+    ident = _model_identity(task, ts, content_hash, kind, par, tr)
+    if (model_dir(task.name, kind, par, ident) / "model.pt").is_file():
+        return ident, "cache"
+    return (ident, "shipped") if shipped.find(task.name, kind, par, ident) is not None else None
+
+
+def _digest_if_enough(task: Task, ts, rd, keys) -> tuple | None:
+    """(digest, {key: (identity, source)}) when the dataset is not generated here but its shipped digest and the
+    models make it unnecessary; else None."""
+    from mpd.data import digest
+    from mpd.data.generate import committed_content_hash
+
+    dg = digest.find(task.name, rd.name, committed_content_hash(rd))
+    if dg is None:
+        return None
+    ready = {k: _ready_model(task, ts, dg.info["content_hash"], k) for k in keys}
+    return (dg, ready) if all(ready.values()) else None
+
+
 def needs(spec, cells) -> list[Need]:
     """What each task of the spec needs, and whether it exists (for the dry run)."""
     from mpd.data.definition import load_definition
-    from mpd.data.generate import chunk_states
-    from mpd.models import shipped
-    from mpd.models.train import model_dir, model_identity
-    from mpd.trajectory import make_parametrization
+    from mpd.data.generate import chunk_states, committed_content_hash, committed_lock
 
     out = []
     for task_name in sorted({c.p["task"] for c in cells}):
@@ -161,10 +200,20 @@ def needs(spec, cells) -> list[Need]:
         rd = load_definition(ts.dataset)
         bad = chunk_states(rd)
         n = rd.definition.n_contexts
-        rate = _PATHS_PER_S.get(task.robot.name, 2.0) * 2
-        out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", n / rate))
-        content = _content_hash(rd) if not bad else None
-        for kind, par, tr in sorted(_model_kinds(cells, task_name), key=repr):
+        # a committed lock says what the generation cost (its CPU seconds, on two cores here); else a rough rate
+        core_s = ((committed_lock(rd) or {}).get("figures") or {}).get("core_seconds")
+        gen_s = core_s / 2 if core_s else n / (_PATHS_PER_S.get(task.robot.name, 2.0) * 2)
+        keys = sorted(_model_kinds(cells, task_name), key=repr)
+        via_digest = _digest_if_enough(task, ts, rd, keys) if bad else None
+        if via_digest:
+            out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", True, "digest"))
+        else:
+            out.append(Need("dataset", task_name, f"{rd.name} [{rd.identity}]", not bad, f"plan {n} contexts", gen_s))
+        # without the dataset here, the committed lock says what its content hash will be (generation is byte for
+        # byte reproducible), so the models' identities are known before it is generated
+        content = _content_hash(rd) if not bad else committed_content_hash(rd)
+        for key in keys:
+            kind, par, tr = key
             train = training_settings(task, ts, tr)
             steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults), 2.0)
             if content is None:
@@ -179,22 +228,13 @@ def needs(spec, cells) -> list[Need]:
                     )
                 )
                 continue
-            param = make_parametrization(task, par)
-            ident = model_identity(content, kind, par, param.settings(), task.spec.model, train, 0)
-            exists = (model_dir(task_name, kind, par, ident) / "model.pt").exists()
-            if not exists and shipped.find(task_name, kind, par, ident) is not None:
-                out.append(Need("model", task_name, f"{_model_label(kind, par, tr)} [{ident}]", True, "shipped"))
-                continue
-            out.append(
-                Need(
-                    "model",
-                    task_name,
-                    f"{_model_label(kind, par, tr)} [{ident}]",
-                    exists,
-                    f"train {train.steps} steps",
-                    train.steps / steps_s,
-                )
-            )
+            ready = _ready_model(task, ts, content, key)
+            ident = ready[0] if ready else _model_identity(task, ts, content, kind, par, tr)
+            label = f"{_model_label(kind, par, tr)} [{ident}]"
+            if ready:
+                out.append(Need("model", task_name, label, True, ready[1]))
+            else:
+                out.append(Need("model", task_name, label, False, f"train {train.steps} steps", train.steps / steps_s))
     return out
 
 
@@ -207,44 +247,72 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
     """Datasets, evaluation contexts and models of every task of the cells, generated/trained when missing."""
     from mpd.data import eval_contexts as ec
     from mpd.data.dataset import load_dataset
+    from mpd.data.definition import load_definition
+    from mpd.data.generate import chunk_states
+    from mpd.models import shipped
+    from mpd.models.train import model_dir
 
     out, jobs = {}, []
     for task_name in sorted({c.p["task"] for c in cells}):
         task = load_task(spec.task_file(task_name))
         ts = spec.data.tasks[task_name]
-        ds = load_dataset(ts.dataset, progress=progress, create_lock=False)  # a run writes only the cache
+        # wsd budgets of one recipe in increasing steps, so that each resumes from the stable phase of the one before
+        keys = sorted(_model_kinds(cells, task_name), key=lambda k: (repr(k[:2]), _steps_last(k[2])))
+        rd = load_definition(ts.dataset)
+        missing = bool(chunk_states(rd))
+        via_digest = _digest_if_enough(task, ts, rd, keys) if missing else None
+        if via_digest:
+            data, ready = via_digest
+            if progress:
+                print(f"{task_name}: dataset {rd.name} not generated: its shipped digest and models suffice", file=sys.stderr)
+        else:
+            data = load_dataset(ts.dataset, progress=progress, create_lock=False)  # a run writes only the cache
         n_ctx = ts.n_contexts or spec.data.n_contexts
         scenes = sorted(
             {(bool(c.p["extra_objects"]), float(c.p["rotation_deg"] or 0.0)) for c in cells if c.p["task"] == task_name}
         )
         if ts.contexts == "held-out":
-            base = ec.task_contexts(task, ds, n_ctx, spec.data.context_seed)
+            base = ec.task_contexts(task, data, n_ctx, spec.data.context_seed)
             contexts = {ec.scene_name(*sc): ec.for_scene(base, task, *sc) for sc in scenes}
         else:
             contexts = {ec.scene_name(*sc): ec.sampled_contexts(task, n_ctx, *sc) for sc in scenes}
         out[task_name] = TaskArtifacts(
             task.name,
             task.file_hash,
-            ds.info["identity"],
-            ds.info["content_hash"],
+            data.info["identity"],
+            data.info["content_hash"],
             contexts,
-            data_range=data_range(task, ds),
+            data_range=data.data_range if via_digest else data_range(task, data),
+            dataset_source="digest" if via_digest else ("generated" if missing else "cache"),
         )
+        if via_digest:
+            for key, (ident, source) in ready.items():
+                kind, par, tr = key
+                d = model_dir(task_name, kind, par, ident)
+                path = d / "model.pt" if source == "cache" else shipped.install(task_name, kind, par, ident, d)
+                if path is None:  # the shipped file changed since it was checked
+                    raise RuntimeError(f"{task_name}: shipped prior {kind}-{par} [{ident}] could not be installed")
+                out[task_name].models[key] = _artifact(path, key, source)
+            continue
         arrays = {}
-        # wsd budgets of one recipe in increasing steps, so that each resumes from the stable phase of the one before
-        for kind, par, tr in sorted(_model_kinds(cells, task_name), key=lambda k: (repr(k[:2]), _steps_last(k[2]))):
+        for kind, par, tr in keys:
             if par not in arrays:
-                arrays[par] = training_arrays(task, ds, par)
+                arrays[par] = training_arrays(task, data, par)
             jobs.append((task_name, kind, par, arrays[par], task.spec.model, training_settings(task, ts, tr), tr))
     before = [_in_cache(j) for j in jobs]
     for (task_name, kind, par, *_, tr), path, cached in zip(jobs, train_models(jobs, workers, progress), before):
-        meta = json.loads((path.parent / "meta.json").read_text())
-        source = "cache" if cached else meta.get("source", "trained")
-        out[task_name].models[(kind, par, tr)] = ModelArtifact(
-            kind, par, meta["identity"], path, file_sha256(path), int(meta["step"]), float(meta["wall_time_s"]), tr,
-            source,
-        )  # fmt: skip
+        out[task_name].models[(kind, par, tr)] = _artifact(path, (kind, par, tr), "cache" if cached else None)
     return out
+
+
+def _artifact(path: Path, key: tuple, source: str | None) -> ModelArtifact:
+    kind, par, tr = key
+    meta = json.loads((path.parent / "meta.json").read_text())
+    source = source or meta.get("source", "trained")
+    return ModelArtifact(
+        kind, par, meta["identity"], path, file_sha256(path), int(meta["step"]), float(meta["wall_time_s"]), tr,
+        source,
+    )  # fmt: skip
 
 
 def _in_cache(job) -> bool:

@@ -123,10 +123,8 @@ class Runner:
             n.estimate_s for n in todo if n.kind == "model"
         ) / max(1, min(self.workers, n_models))
         lines.append("")
-        lines.append(
-            f"units (cell x context): {p.units_total} in all, {p.units_todo} to compute; "
-            f"artifacts to build: ~{est / 60:.0f} min of the estimate (rough, 2-core CPU)"
-        )
+        build = f"artifacts to build: ~{est / 60:.0f} min of the estimate (rough, 2-core CPU)" if todo else "nothing to build"
+        lines.append(f"units (cell x context): {p.units_total} in all, {p.units_todo} to compute; {build}")
         return "\n".join(lines)
 
     # ------------------------------------------------------------------------------------------------ running

@@ -31,22 +31,19 @@ from typing import Any
 import torch
 
 from mpd.models.checkpoint import META_FILE, MODEL_FILE, checkpoint_meta, read_checkpoint
+from mpd.paths import SHIPPED_BUNDLED, SHIPPED_ENV, shipped_roots
 from mpd.provenance import cpu_model
 from mpd.schema import file_sha256
 
-BUNDLED = Path(__file__).resolve().parents[1] / "priors"
-ENV = "MPD_PRIORS"
+BUNDLED = SHIPPED_BUNDLED
+ENV = SHIPPED_ENV
 LOCK_FORMAT = "mpd-shipped-prior"
 MAX_BYTES = 10 * 1024 * 1024  # the priors issue: <= 5 MB for the 2-D tasks, <= 10 MB for the Panda ones
 
 
 def roots() -> list[Path]:
-    """The folders searched for shipped priors, in order."""
-    env = os.environ.get(ENV)
-    if env is not None and env.strip().lower() == "none":
-        return []
-    extra = [Path(p) for p in env.split(os.pathsep) if p] if env else []
-    return [*extra, BUNDLED]
+    """The folders searched for shipped priors, in order (:func:`mpd.paths.shipped_roots`)."""
+    return shipped_roots()
 
 
 def stem(kind: str, parametrization: str, identity: str) -> str:
