@@ -17,11 +17,14 @@ def data() -> None:
 @click.argument("definition")
 @click.option("--workers", "-j", type=int, default=None, help="Worker processes (default: all cores).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def generate(definition: str, workers: int | None, quiet: bool) -> None:
-    """Generate (or resume) the dataset of DEFINITION (a name under datasets/ or a .toml path)."""
+@click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True)
+@click.option("--address", default=None, help="Ray cluster address (with --executor ray); default: a local Ray")
+def generate(definition: str, workers: int | None, quiet: bool, executor: str, address: str | None) -> None:
+    """Generate (or resume) the dataset of DEFINITION (a name under datasets/ or a .toml path); with
+    `--executor ray`, every chunk is a Ray task on the cluster (the same chunks, byte for byte)."""
     from mpd.data.generate import generate as run
 
-    lock = run(definition, workers=workers, progress=not quiet)
+    lock = run(definition, workers=workers, progress=not quiet, executor=executor, address=address)
     if not lock:
         raise click.ClickException("generation did not complete")
     f = lock["figures"]
@@ -252,4 +255,6 @@ def digest(name: str, root: str | None) -> None:
     task = load_task(ds.task)
     path = dg.write(task, ds, data_range(task, ds), root or SHIPPED_BUNDLED)
     d = dg.load(path)
-    click.echo(f"{path} ({path.stat().st_size / 1024:.0f} KiB): {len(d)} held-out rows, content {d.info['content_hash'][:16]}")
+    click.echo(
+        f"{path} ({path.stat().st_size / 1024:.0f} KiB): {len(d)} held-out rows, content {d.info['content_hash'][:16]}"
+    )

@@ -76,6 +76,8 @@ def load_dataset(
     workers: int | None = None,
     progress: bool = True,
     create_lock: bool = True,
+    executor: str = "local",
+    address: str | None = None,
 ) -> Dataset:
     """Load a dataset by name (``datasets/NAME.toml``) or definition path (``create_lock``: see
     :func:`mpd.data.generate.generate`).
@@ -99,7 +101,7 @@ def load_dataset(
                 f"{rd.name}: not generated yet, generating {rd.definition.n_contexts} contexts",
                 file=sys.stderr,
             )
-        generate(rd, workers=workers, progress=progress, create_lock=create_lock)
+        generate(rd, workers=workers, progress=progress, create_lock=create_lock, executor=executor, address=address)
         still = chunk_states(rd, use_lock=False)
         if still:
             raise RuntimeError(f"dataset {rd.name}: chunks {sorted(still)} could not be generated")

@@ -22,14 +22,17 @@ import numpy as np
 
 from mpd.data.definition import GENERATOR_VERSION, ResolvedDefinition, load_definition
 from mpd.data.storage import (
+    chunk_record,
     clean_stale_temporaries,
     content_hash,
+    npz_bytes,
     read_chunk,
     read_sidecar,
     remove_chunk,
     verify_chunk,
     write_atomic,
     write_chunk,
+    write_chunk_bytes,
 )
 from mpd.provenance import provenance
 
@@ -217,11 +220,17 @@ def generate(
     chunks: list[int] | None = None,
     log=None,
     create_lock: bool = True,
+    executor: str = "local",
+    address: str | None = None,
 ) -> dict:
     """Generate (or finish) a dataset; returns its lock record (also written next to the definition).
 
     Args:
-        workers: processes (default: all cores); 1 runs in this process.
+        workers: processes (default: all cores); 1 runs in this process. With ``executor="ray"``: the CPUs of a
+            local Ray when no ``address`` is given.
+        executor: "local" (processes of this machine) or "ray": every chunk is a Ray task (one CPU), retried by Ray
+            when its worker dies; its bytes come back through the object store, checked by sha256, and are written
+            here (unless this cache already holds them: a shared cache). The chunks are the same, byte for byte.
         chunks: only these chunk indices (for tests and partial runs); the lock is written when all are done.
         create_lock: False: a lock file next to the definition is updated when it exists but never created (an
             experiment run writes only under its run folder and the cache; `mpd data generate` creates it).
@@ -239,6 +248,8 @@ def generate(
             remove_chunk(rd.data_dir, i)
     pending = sorted(todo if chunks is None else set(todo) & set(chunks))
     n_ctx = sum(d.chunk_range(i)[1] - d.chunk_range(i)[0] for i in pending)
+    if executor not in ("local", "ray"):
+        raise ValueError(f"unknown executor {executor!r} (local, ray)")
     if workers is None:
         workers = os.cpu_count() or 1
     workers = max(1, min(int(workers), len(pending) or 1))
@@ -247,7 +258,12 @@ def generate(
         done = d.n_contexts - sum(d.chunk_range(i)[1] - d.chunk_range(i)[0] for i in todo)
         if done:
             say(f"{rd.name}: resuming, {done} of {d.n_contexts} contexts already generated")
-        _run(rd, pending, workers, n_ctx, progress)
+        if executor == "ray":
+            from mpd import distributed
+
+            distributed.init(address, workers)
+            workers = distributed.cluster_cpus()
+        _run(rd, pending, workers, n_ctx, progress, executor)
     wall = time.perf_counter() - t0
     if chunk_states(rd, use_lock=False):
         return {}
@@ -260,7 +276,9 @@ def generate(
     return lock
 
 
-def _run(rd: ResolvedDefinition, pending: list[int], workers: int, n_ctx: int, progress: bool) -> None:
+def _run(
+    rd: ResolvedDefinition, pending: list[int], workers: int, n_ctx: int, progress: bool, executor: str = "local"
+) -> None:
     from tqdm import tqdm
 
     bar = tqdm(total=n_ctx, desc=rd.name, unit="ctx", disable=not progress, smoothing=0.05, dynamic_ncols=True)
@@ -273,7 +291,9 @@ def _run(rd: ResolvedDefinition, pending: list[int], workers: int, n_ctx: int, p
         bar.set_postfix_str(f"{paths[0] / max(el, 1e-9):.1f} paths/s", refresh=False)
 
     try:
-        if workers == 1:
+        if executor == "ray":
+            _run_ray(rd, pending, tick)
+        elif workers == 1:
             import torch
 
             threads = torch.get_num_threads()
@@ -313,6 +333,43 @@ def _run_pool(rd: ResolvedDefinition, pending: list[int], workers: int, tick) ->
         else:
             os.environ["OMP_NUM_THREADS"] = env_before
     ex.shutdown(wait=True)
+
+
+def _ray_chunk(rd: ResolvedDefinition, i: int) -> tuple[dict, bytes]:
+    """Ray task: compute chunk i, write it in this worker's cache (atomically: a retry after a kill is safe) and
+    return its sidecar record (with the node) and archive bytes for the driver."""
+    from mpd import distributed
+
+    distributed.single_threaded()
+    arrays, meta = compute_chunk(rd, i)
+    data = npz_bytes(arrays)
+    record = chunk_record(i, data, dict(meta, node=distributed.node_id()))
+    rd.data_dir.mkdir(parents=True, exist_ok=True)
+    write_chunk_bytes(rd.data_dir, i, data, record)
+    return record, data
+
+
+def _run_ray(rd: ResolvedDefinition, pending: list[int], tick) -> None:
+    import ray
+
+    from mpd.distributed import checked
+
+    # max_retries: Ray reruns a chunk whose worker died (a killed process, a lost node); an error raised by the
+    # code itself is not retried (it would fail again) and reaches the driver
+    task = ray.remote(num_cpus=1, max_retries=3)(_ray_chunk)
+    refs = {task.remote(rd, i): i for i in pending}
+    while refs:
+        ready, _ = ray.wait(list(refs), num_returns=1)
+        for ref in ready:
+            i = refs.pop(ref)
+            record, data = ray.get(ref)
+            checked(data, record["sha256"], f"{rd.name} chunk {i}")
+            ok, _ = verify_chunk(rd.data_dir, i, record["sha256"])
+            if not ok:  # not already here through a shared cache
+                write_chunk_bytes(rd.data_dir, i, data, record)
+            start, stop = record["contexts"]
+            for k in range(stop - start):
+                tick(k < record["successes"])
 
 
 def _drain(q, tick) -> None:

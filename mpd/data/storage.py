@@ -58,9 +58,8 @@ def write_atomic(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def write_chunk(directory: Path, i: int, arrays: dict[str, np.ndarray], meta: dict) -> dict:
-    """Write chunk i (archive, then sidecar); returns the sidecar record."""
-    data = npz_bytes(arrays)
+def chunk_record(i: int, data: bytes, meta: dict) -> dict:
+    """The sidecar record of chunk i whose archive bytes are ``data``."""
     record = {
         "chunk": i,
         "path": chunk_name(i),
@@ -68,9 +67,21 @@ def write_chunk(directory: Path, i: int, arrays: dict[str, np.ndarray], meta: di
         "size": len(data),
     }
     record.update(meta)
+    return record
+
+
+def write_chunk_bytes(directory: Path, i: int, data: bytes, record: dict) -> dict:
+    """Write chunk i from its archive bytes and sidecar record (archive, then sidecar: a chunk counts as finished
+    only once its sidecar exists)."""
     write_atomic(directory / chunk_name(i), data)
     write_atomic(directory / sidecar_name(i), (json.dumps(record, indent=1) + "\n").encode())
     return record
+
+
+def write_chunk(directory: Path, i: int, arrays: dict[str, np.ndarray], meta: dict) -> dict:
+    """Write chunk i (archive, then sidecar); returns the sidecar record."""
+    data = npz_bytes(arrays)
+    return write_chunk_bytes(directory, i, data, chunk_record(i, data, meta))
 
 
 def read_sidecar(directory: Path, i: int) -> dict | None:

@@ -243,8 +243,11 @@ def _content_hash(rd) -> str | None:
     return json.loads(p.read_text()).get("content_hash") if p.exists() else None
 
 
-def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, TaskArtifacts]:
-    """Datasets, evaluation contexts and models of every task of the cells, generated/trained when missing."""
+def resolve(
+    spec, cells, progress: bool = True, workers: int = 1, executor: str = "local", address: str | None = None
+) -> dict[str, TaskArtifacts]:
+    """Datasets, evaluation contexts and models of every task of the cells, generated/trained when missing (with
+    ``executor="ray"``: dataset chunks and trainings as Ray tasks on the cluster at ``address``)."""
     from mpd.data import eval_contexts as ec
     from mpd.data.dataset import load_dataset
     from mpd.data.definition import load_definition
@@ -264,9 +267,13 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
         if via_digest:
             data, ready = via_digest
             if progress:
-                print(f"{task_name}: dataset {rd.name} not generated: its shipped digest and models suffice", file=sys.stderr)
+                print(
+                    f"{task_name}: dataset {rd.name} not generated: its shipped digest and models suffice",
+                    file=sys.stderr,
+                )
         else:
-            data = load_dataset(ts.dataset, progress=progress, create_lock=False)  # a run writes only the cache
+            # a run writes only the cache (create_lock=False)
+            data = load_dataset(ts.dataset, progress=progress, create_lock=False, executor=executor, address=address)
         n_ctx = ts.n_contexts or spec.data.n_contexts
         scenes = sorted(
             {(bool(c.p["extra_objects"]), float(c.p["rotation_deg"] or 0.0)) for c in cells if c.p["task"] == task_name}
@@ -300,7 +307,8 @@ def resolve(spec, cells, progress: bool = True, workers: int = 1) -> dict[str, T
                 arrays[par] = training_arrays(task, data, par)
             jobs.append((task_name, kind, par, arrays[par], task.spec.model, training_settings(task, ts, tr), tr))
     before = [_in_cache(j) for j in jobs]
-    for (task_name, kind, par, *_, tr), path, cached in zip(jobs, train_models(jobs, workers, progress), before):
+    paths = train_models(jobs, workers, progress, executor, address)
+    for (task_name, kind, par, *_, tr), path, cached in zip(jobs, paths, before):
         out[task_name].models[(kind, par, tr)] = _artifact(path, (kind, par, tr), "cache" if cached else None)
     return out
 
@@ -353,10 +361,14 @@ def _chain_key(job) -> tuple:
     return (task_name, kind, par, repr(sorted(rest.items())))
 
 
-def train_models(jobs: list, workers: int, progress: bool) -> list[Path]:
+def train_models(
+    jobs: list, workers: int, progress: bool, executor: str = "local", address: str | None = None
+) -> list[Path]:
     """Train the missing models, several at once (one process and one thread each) when workers allow: on a small
     CPU two single-threaded trainings finish in about the time of one two-threaded training. The wsd budgets of one
-    recipe form a chain that runs in one worker, in increasing steps."""
+    recipe form a chain that runs in one worker, in increasing steps. ``executor="ray"``: each chain is a Ray task
+    (one GPU when the cluster has GPUs, else one CPU), retried by Ray when its worker dies (it resumes from the
+    worker's ``last.pt``); the models come back through the object store, checked by sha256 on arrival."""
     from mpd.models import shipped
     from mpd.models.train import model_dir, model_identity
 
@@ -370,6 +382,9 @@ def train_models(jobs: list, workers: int, progress: bool) -> list[Path]:
     chains: dict[tuple, list] = {}
     for j in sorted((j for j in jobs if not exists(j)), key=lambda j: j[5].steps):
         chains.setdefault(_chain_key(j), []).append(j)
+    if executor == "ray" and chains:
+        _train_ray(list(chains.values()))
+        return [_train_job(j, progress, None) for j in jobs]  # all in the cache now: returns at once
     n = min(max(1, workers), len(chains))
     if n <= 1:
         paths = {id(j): _train_job(j, progress, None) for j in sorted(jobs, key=lambda j: j[5].steps)}
@@ -381,3 +396,47 @@ def train_models(jobs: list, workers: int, progress: bool) -> list[Path]:
         futures = [(chain, pool.submit(_train_chain, chain, progress, 1)) for chain in chains.values()]
         done = {id(j): path for chain, f in futures for j, path in zip(chain, f.result())}
     return [done[id(j)] if id(j) in done else _train_job(j, progress, None) for j in jobs]
+
+
+def _ray_chain(chain: list) -> list[dict]:
+    """Ray task: train a chain of models in this worker's cache; return each model's files for the driver."""
+    from mpd import distributed
+
+    distributed.single_threaded()
+    out = []
+    for job, path in zip(chain, _train_chain(chain, False, 1)):
+        meta = json.loads((path.parent / "meta.json").read_text())
+        meta["node"] = distributed.node_id()
+        data = path.read_bytes()
+        out.append(
+            {"task": job[0], "identity": meta["identity"], "model": data, "meta": meta, "sha256": file_sha256(path)}
+        )
+    return out
+
+
+def _train_ray(chains: list[list]) -> None:
+    """Every chain as a Ray task; each finished model is written into this process's cache (unless it already holds
+    that very file: a shared cache), after its sha256 is checked."""
+    import os
+
+    import ray
+
+    from mpd import distributed
+    from mpd.models.train import model_dir
+
+    gpu = distributed.cluster_gpus() > 0
+    task = ray.remote(num_gpus=1 if gpu else 0, num_cpus=0 if gpu else 1, max_retries=3)(_ray_chain)
+    refs = [task.remote(chain) for chain in chains]
+    while refs:
+        ready, refs = ray.wait(refs, num_returns=1)
+        for m in ray.get(ready[0]):
+            data = distributed.checked(m["model"], m["sha256"], f"model {m['identity']}")
+            meta = m["meta"]
+            d = model_dir(m["task"], meta["kind"], meta["parametrization"], m["identity"])
+            if (d / "model.pt").is_file() and file_sha256(d / "model.pt") == m["sha256"]:
+                continue
+            d.mkdir(parents=True, exist_ok=True)
+            for name, blob in (("meta.json", json.dumps(meta, indent=2, sort_keys=True).encode()), ("model.pt", data)):
+                tmp = d / f".{name}.ray-{os.getpid()}"
+                tmp.write_bytes(blob)
+                os.replace(tmp, d / name)  # meta first: a model.pt always has its meta.json

@@ -81,6 +81,7 @@ class Runner:
         self.mlflow = mlflow
         self.record = record
         self.recorder = recorder
+        self.unit_nodes: dict[str, int] = {}  # Ray node -> planning units it ran (executor "ray")
         from mpd.device import default_device
 
         dev = device or (spec.data.device if spec.data.device != "auto" else None)
@@ -123,7 +124,11 @@ class Runner:
             n.estimate_s for n in todo if n.kind == "model"
         ) / max(1, min(self.workers, n_models))
         lines.append("")
-        build = f"artifacts to build: ~{est / 60:.0f} min of the estimate (rough, 2-core CPU)" if todo else "nothing to build"
+        build = (
+            f"artifacts to build: ~{est / 60:.0f} min of the estimate (rough, 2-core CPU)"
+            if todo
+            else "nothing to build"
+        )
         lines.append(f"units (cell x context): {p.units_total} in all, {p.units_todo} to compute; {build}")
         return "\n".join(lines)
 
@@ -136,7 +141,14 @@ class Runner:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         store = RowStore(self.run_dir)
         manifest = self._manifest(status="resolving")
-        resolved = artifacts.resolve(self.spec, self.cells, progress=self.progress, workers=self.workers)
+        if self.executor == "ray":
+            from mpd import distributed
+
+            distributed.init(self.address, self.workers)
+        resolved = artifacts.resolve(
+            self.spec, self.cells, progress=self.progress, workers=self.workers, executor=self.executor,
+            address=self.address,
+        )  # fmt: skip
         manifest["artifacts"] = {k: v.summary() for k, v in resolved.items()}
         manifest["status"] = "running"
         write_json(manifest, self.run_dir / "manifest.json")
@@ -154,6 +166,8 @@ class Runner:
             if len(df):
                 write_parquet(df, self.run_dir / "results.parquet")
             manifest.update(status=status, finished_at=time.time(), n_rows=int(len(df)))
+            if self.executor == "ray":
+                manifest["ray_nodes"] = self._ray_nodes(resolved)
             write_json(manifest, self.run_dir / "manifest.json")
         if self.mlflow:
             from mpd.experiments.tracking import log_model_to_mlflow, log_run_to_mlflow
@@ -307,15 +321,42 @@ class Runner:
     def _execute_ray(self, units: list[Unit], done) -> None:
         import ray
 
-        if not ray.is_initialized():
-            kw = {"address": self.address} if self.address else {"num_cpus": self.workers}
-            ray.init(include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False, **kw)
-        remote = ray.remote(num_cpus=1)(_ray_unit)
-        pending = [remote.remote(u) for u in units]
+        from mpd import distributed
+
+        distributed.init(self.address, self.workers)
+        # each model once in the object store: a worker whose cache lacks it (no shared cache) takes it from there
+        blobs = {}
+        for u in units:
+            if u.model_path and u.model_path not in blobs:
+                data = Path(u.model_path).read_bytes()
+                blobs[u.model_path] = (u.provenance.get("model_hash", ""), [ray.put(data)])
+        remote = ray.remote(num_cpus=1, max_retries=3)(_ray_unit)
+        pending = [remote.remote(u, blobs.get(u.model_path)) for u in units]
         while pending:
             finished, pending = ray.wait(pending, num_returns=1)
             for f in finished:
-                done(ray.get(f))
+                res, node = ray.get(f)
+                self.unit_nodes[node] = self.unit_nodes.get(node, 0) + 1
+                done(res)
+
+    def _ray_nodes(self, resolved: dict) -> dict:
+        """Which Ray node did what: dataset chunks (from the chunks' records), trainings (the models' metas) and
+        planning units of this run."""
+        from mpd.data.definition import load_definition
+        from mpd.data.storage import read_sidecar
+
+        chunks, trainings = {}, {}
+        for task_name, art in resolved.items():
+            rd = load_definition(self.spec.data.tasks[task_name].dataset)
+            for i in range(rd.definition.n_chunks):
+                node = (read_sidecar(rd.data_dir, i) or {}).get("node")
+                if node:
+                    chunks[node] = chunks.get(node, 0) + 1
+            for m in art.models.values():
+                node = json.loads((m.path.parent / "meta.json").read_text()).get("node")
+                if node:
+                    trainings[node] = trainings.get(node, 0) + 1
+        return {"dataset_chunks": chunks, "trainings": trainings, "units": dict(self.unit_nodes)}
 
 
 def _worker_init() -> None:
@@ -326,9 +367,40 @@ def _worker_init() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
-def _ray_unit(unit: Unit) -> UnitResult:
+_VERIFIED_MODELS: dict[str, str] = {}  # driver's model path -> the path of the same file on this worker
+
+
+def _ray_unit(unit: Unit, blob: tuple[str, list] | None = None) -> tuple[UnitResult, str]:
+    """Ray task: one unit; returns its result and the node it ran on. A model missing from this worker's view of the
+    cache (the cache is not shared) is written into this worker's cache from the object store, checked by sha256."""
+    from mpd import distributed
+
     _worker_init()
-    return run_unit(unit)
+    if unit.model_path and blob is not None:
+        unit.model_path = _model_here(unit.model_path, *blob)
+    return run_unit(unit), distributed.node_id()
+
+
+def _model_here(path: str, sha256: str, ref: list) -> str:
+    if path in _VERIFIED_MODELS:
+        return _VERIFIED_MODELS[path]
+    import ray
+
+    from mpd import distributed
+    from mpd.paths import cache_dir
+
+    here = Path(path)
+    if not (here.is_file() and file_sha256(here) == sha256):
+        rel = Path(*here.parts[-4:])  # models/<task>/<kind-par-identity>/model.pt
+        here = cache_dir() / rel
+        if not (here.is_file() and file_sha256(here) == sha256):
+            data = distributed.checked(ray.get(ref[0]), sha256, f"model {path}")
+            here.parent.mkdir(parents=True, exist_ok=True)
+            tmp = here.with_name(f".{here.name}.ray-{os.getpid()}")
+            tmp.write_bytes(data)
+            os.replace(tmp, here)
+    _VERIFIED_MODELS[path] = str(here)
+    return str(here)
 
 
 def save_history(run_dir: Path, res: UnitResult) -> Path:
