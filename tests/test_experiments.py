@@ -504,3 +504,30 @@ def test_eval_2d_cpu_on_a_fresh_clone_generates_and_trains_nothing(tmp_path, mon
     assert all(n.exists for n in needs), "\n".join(n.describe() for n in needs if not n.exists)
     assert {n.detail for n in needs if n.kind == "dataset"} == {"digest"}
     assert {n.detail for n in needs if n.kind == "model"} == {"shipped"}
+
+
+def test_scale_shrinks_every_cell_and_touches_nothing_full_size(tmp_path, monkeypatch):
+    """`--scale`: the same matrix with fewer contexts, samples, steps and dataset contexts (with their floors), under
+    a hash, run folder and dataset identities of its own; held-out contexts enough for its evaluation."""
+    from mpd.experiments.spec import scale_spec
+
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MPD_RUNS", str(tmp_path / "runs"))
+    full = load_spec("paper-main")
+    small = scale_spec(full, 1e-5)
+    assert [c.p["method"] for c in small.cells()] == [c.p["method"] for c in full.cells()]
+    assert small.hash != full.hash and small.name == "paper-main-x1e-05"
+    assert {c.p["n_samples"] for c in small.cells()} == {8} and small.data.n_contexts == 2
+    for name, ts in small.data.tasks.items():
+        assert ts.train_steps in (20, 30)  # 2 M / 3 M paper steps x 1e-5, floor 20
+        big, rd = full.definition(name), small.definition(name)
+        assert rd.identity != big.identity and rd.name == f"{big.name}-x1e-05"
+        d = rd.definition
+        assert d.n_contexts == 64 and d.n_contexts // d.chunk_size >= 4
+        assert (d.split.val + d.split.test) * d.n_contexts >= 4 * small.data.n_contexts
+        assert not rd.lock_path.exists()
+    assert scale_spec(full, 1.0) is full
+    with pytest.raises(ConfigError, match="--scale"):
+        scale_spec(full, 0)
+    text = Runner(small).describe()
+    assert "-x1e-05 [" in text and "train 20 steps" in text

@@ -56,12 +56,23 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
     help="torch threads of the planning process with --workers 1 (worker processes always use 1); set it on a busy "
     "machine: more threads than free cores makes OpenMP spin and can be 10x slower",
 )
-def run(spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, keep_going, threads):
+@click.option(
+    "--scale",
+    type=click.FloatRange(min=0, min_open=True, max=1),
+    default=None,
+    help="shrink every cell by this factor (contexts, samples, training steps, dataset size; with floors): the "
+    "whole spec end to end in minutes, e.g. to try a cluster before the real run; a run and artifacts of its own",
+)
+def run(
+    spec, only, executor, address, workers, dry_run, fresh, run_dir, device, report, mlflow, keep_going, threads, scale
+):
     """Run an experiment SPEC (a name under benchmarks/specs/ or a path)."""
     from mpd.experiments.runner import Runner
-    from mpd.experiments.spec import load_spec
+    from mpd.experiments.spec import load_spec, scale_spec
 
     s = load_spec(spec)
+    if scale is not None:
+        s = scale_spec(s, scale)
     only_d = _parse_only(only, str(s.path))
     from mpd.experiments.spec import AXES, PLANNER_PREFIX
 

@@ -190,14 +190,13 @@ def _digest_if_enough(task: Task, ts, rd, keys) -> tuple | None:
 
 def needs(spec, cells) -> list[Need]:
     """What each task of the spec needs, and whether it exists (for the dry run)."""
-    from mpd.data.definition import load_definition
     from mpd.data.generate import chunk_states, committed_content_hash, committed_lock
 
     out = []
     for task_name in sorted({c.p["task"] for c in cells}):
         task = load_task(spec.task_file(task_name))
         ts = spec.data.tasks[task_name]
-        rd = load_definition(ts.dataset)
+        rd = spec.definition(task_name)
         bad = chunk_states(rd)
         n = rd.definition.n_contexts
         # a committed lock says what the generation cost (its CPU seconds, on two cores here); else a rough rate
@@ -250,7 +249,6 @@ def resolve(
     ``executor="ray"``: dataset chunks and trainings as Ray tasks on the cluster at ``address``)."""
     from mpd.data import eval_contexts as ec
     from mpd.data.dataset import load_dataset
-    from mpd.data.definition import load_definition
     from mpd.data.generate import chunk_states
     from mpd.models import shipped
     from mpd.models.train import model_dir
@@ -261,7 +259,7 @@ def resolve(
         ts = spec.data.tasks[task_name]
         # wsd budgets of one recipe in increasing steps, so that each resumes from the stable phase of the one before
         keys = sorted(_model_kinds(cells, task_name), key=lambda k: (repr(k[:2]), _steps_last(k[2])))
-        rd = load_definition(ts.dataset)
+        rd = spec.definition(task_name)
         missing = bool(chunk_states(rd))
         via_digest = _digest_if_enough(task, ts, rd, keys) if missing else None
         if via_digest:
@@ -273,7 +271,7 @@ def resolve(
                 )
         else:
             # a run writes only the cache (create_lock=False)
-            data = load_dataset(ts.dataset, progress=progress, create_lock=False, executor=executor, address=address)
+            data = load_dataset(rd, progress=progress, create_lock=False, executor=executor, address=address)
         n_ctx = ts.n_contexts or spec.data.n_contexts
         scenes = sorted(
             {(bool(c.p["extra_objects"]), float(c.p["rotation_deg"] or 0.0)) for c in cells if c.p["task"] == task_name}

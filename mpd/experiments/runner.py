@@ -342,12 +342,11 @@ class Runner:
     def _ray_nodes(self, resolved: dict) -> dict:
         """Which Ray node did what: dataset chunks (from the chunks' records), trainings (the models' metas) and
         planning units of this run."""
-        from mpd.data.definition import load_definition
         from mpd.data.storage import read_sidecar
 
         chunks, trainings = {}, {}
         for task_name, art in resolved.items():
-            rd = load_definition(self.spec.data.tasks[task_name].dataset)
+            rd = self.spec.definition(task_name)
             for i in range(rd.definition.n_chunks):
                 node = (read_sidecar(rd.data_dir, i) or {}).get("node")
                 if node:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -75,6 +76,9 @@ class TaskSettings:
     # where the evaluation contexts come from (mpd.data.eval_contexts): "held-out" (the dataset's held-out paths,
     # as the authors; the default) or "sampled" (mpd's earlier dataset-independent contexts)
     contexts: str = "held-out"
+    # set by --scale (scale_spec), not in spec files: the dataset's contexts are multiplied by it (mpd.data, a
+    # definition of its own with its own identity, never the full-size one)
+    dataset_scale: float | None = None
 
 
 @dataclass(frozen=True)
@@ -137,6 +141,14 @@ class Spec:
         from mpd.tasks import resolve_task_path
 
         return resolve_task_path(name).resolve()
+
+    def definition(self, task_name: str):
+        """The dataset definition a task of this spec uses (a scaled copy under ``--scale``)."""
+        from mpd.data.definition import load_definition
+
+        ts = self.data.tasks[task_name]
+        rd = load_definition(ts.dataset)
+        return scaled_definition(rd, ts.dataset_scale, self.data.n_contexts if ts.n_contexts is None else ts.n_contexts)
 
     def task_name(self, entry: str) -> str:
         """The name of a task given by name or path (for ``--only task=...``)."""
@@ -377,3 +389,71 @@ def _check_combinations(spec: Spec, path) -> None:
                 "axes",
                 f"impossible combination ({cell.label()}): {problem}; remove it with [[exclude]]",
             )
+
+
+# --scale: the floors that keep a shrunk run meaningful end to end
+SCALE_MIN_CONTEXTS, SCALE_MIN_SAMPLES, SCALE_MIN_STEPS, SCALE_MIN_DATASET = 2, 8, 20, 64
+
+
+def _scaled(n: int, factor: float, floor: int) -> int:
+    return max(min(floor, n), math.ceil(n * factor - 1e-9))  # 3e6 x 1e-5 is 30.000000000000004
+
+
+def scale_spec(spec: Spec, factor: float) -> Spec:
+    """The same spec with every cell shrunk by ``factor`` (0 < factor <= 1): evaluation contexts, samples, training
+    steps (of the profile and of `training.steps` axes) and dataset size, each with a floor (2 contexts, 8 samples,
+    20 steps, 64 dataset contexts). How a user tries a cluster (or a laptop) on a big spec before the real run: the
+    matrix, the methods and the pipeline are unchanged; its results are not the spec's. Its own hash, run folder,
+    dataset identities and model identities, so nothing full-size is touched."""
+    if not 0 < factor <= 1:
+        raise ConfigError("--scale", "", f"must be in (0, 1], got {factor}")
+    if factor == 1:
+        return spec
+    from mpd.tasks import load_task
+
+    d = spec.data
+    tasks = {}
+    for name, ts in d.tasks.items():
+        steps = ts.train_steps or load_task(spec.task_file(name)).training(ts.profile).steps
+        tasks[name] = dataclasses.replace(
+            ts,
+            train_steps=_scaled(steps, factor, SCALE_MIN_STEPS),
+            n_contexts=None if ts.n_contexts is None else _scaled(ts.n_contexts, factor, SCALE_MIN_CONTEXTS),
+            dataset_scale=factor,
+        )
+    axes = dict(d.axes)
+    if "n_samples" in axes:
+        axes["n_samples"] = sorted({_scaled(int(n), factor, SCALE_MIN_SAMPLES) for n in axes["n_samples"]})
+    if f"{TRAINING_PREFIX}steps" in axes:
+        axes[f"{TRAINING_PREFIX}steps"] = sorted(
+            {_scaled(int(n), factor, SCALE_MIN_STEPS) for n in axes[f"{TRAINING_PREFIX}steps"]}
+        )
+    data = dataclasses.replace(
+        d,
+        axes=axes,
+        tasks=tasks,
+        n_contexts=_scaled(d.n_contexts, factor, SCALE_MIN_CONTEXTS),
+        n_samples=_scaled(d.n_samples, factor, SCALE_MIN_SAMPLES),
+    )
+    raw = {**spec.raw, "scale": factor}
+    out = Spec(data, spec.path, raw, spec.task_files)
+    out.name = f"{spec.name}-x{factor:g}"
+    return out
+
+
+def scaled_definition(rd, factor: float | None, n_eval: int):
+    """A dataset definition shrunk by ``factor`` (None: ``rd`` itself): its contexts (>= 64) in >= 4 chunks, and
+    held-out fractions raised so that it holds >= 4 x ``n_eval`` held-out contexts. A definition of its own (name
+    ``<name>-x<factor>``, its own identity and cache folder; no lock file is written for it)."""
+    if factor is None or factor >= 1:
+        return rd
+    from mpd.data.definition import ResolvedDefinition, identity_of
+
+    defn = rd.definition
+    n = _scaled(defn.n_contexts, factor, SCALE_MIN_DATASET)
+    held = min(0.25, max(defn.split.val + defn.split.test, 4.0 * n_eval / n) / 2)
+    split = dataclasses.replace(defn.split, val=max(defn.split.val, held), test=max(defn.split.test, held))
+    new = dataclasses.replace(
+        defn, name=f"{defn.name}-x{factor:g}", n_contexts=n, chunk_size=max(1, math.ceil(n / 4)), split=split
+    )
+    return ResolvedDefinition(new, rd.task, None, identity_of(new, rd.task))
