@@ -267,3 +267,52 @@ def test_cli_info_and_show(reference, tmp_path, monkeypatch):
     r = CliRunner().invoke(data, ["show", str(path), "--out", str(out), "--n", "5"])
     assert r.exit_code == 0, r.output
     assert out.stat().st_size > 1000
+
+
+def test_paths_are_memory_mapped_and_read_where_indexed(reference, monkeypatch, capfd):
+    """Loading keeps the dense paths in the chunk files (memory-mapped); every way of indexing them gives what the
+    whole arrays, read the ordinary way (np.load), give; the waypoint fit block by block equals the fit at once."""
+    from mpd.data.dataset import PathArray
+    from mpd.data.storage import map_chunk, read_chunk
+    from mpd.models.data import training_arrays
+    from mpd.trajectory import make_parametrization
+
+    path, _, _, cache = reference
+    monkeypatch.setenv("MPD_CACHE", str(cache))
+    rd = load_definition(path)
+    for i in range(rd.definition.n_chunks):
+        mapped, read = map_chunk(rd.data_dir, i), read_chunk(rd.data_dir, i)
+        assert isinstance(mapped["path"], np.memmap) and set(mapped) == set(read)
+        for k in read:
+            assert mapped[k].dtype == read[k].dtype and np.array_equal(np.asarray(mapped[k]), read[k], equal_nan=True)
+    chunks = [read_chunk(rd.data_dir, i) for i in range(rd.definition.n_chunks)]
+    fwd = np.concatenate([c["path"][c["success"] & c["fit_in_range"]] for c in chunks])
+    ref = np.concatenate([fwd, fwd[:, ::-1]])
+    ds = load_dataset(path, progress=False)
+    assert isinstance(ds.paths, PathArray) and ds.paths.shape == ref.shape and len(ds.paths) == len(ref)
+    rng = np.random.default_rng(0)
+    idx = rng.permutation(len(ref))[:7]
+    mask = rng.random(len(ref)) < 0.5
+    assert np.array_equal(np.asarray(ds.paths), ref)
+    assert np.array_equal(ds.paths[idx], ref[idx]) and np.array_equal(ds.paths[mask], ref[mask])
+    assert np.array_equal(ds.paths[3], ref[3]) and np.array_equal(ds.paths[-1, -1], ref[-1, -1])
+    assert np.array_equal(ds.paths[:, 0], ref[:, 0]) and np.array_equal(ds.paths[2:5], ref[2:5])
+    sub = ds.subset("train")
+    assert np.array_equal(np.asarray(sub.paths), ref[ds.split == 0]) and np.array_equal(
+        sub.paths[[0, -1]], ref[ds.split == 0][[0, -1]]
+    )
+    blocks = [b for _, _, b in ds.paths.blocks(size=5)]
+    assert np.array_equal(np.concatenate(blocks), ref)
+    param = make_parametrization(rd.task, "waypoints")
+    x = training_arrays(rd.task, ds, "waypoints").x
+    assert np.array_equal(x, np.ascontiguousarray(param.free_rows(param.fit(ref)), dtype=np.float32))
+    # a chunk marked synthetic makes the whole dataset say so, loudly
+    side = rd.data_dir / "chunk-00000.json"
+    saved = side.read_text()
+    try:
+        side.write_text(json.dumps({**json.loads(saved), "synthetic": True}))
+        capfd.readouterr()
+        assert load_dataset(path, progress=False).info["synthetic"] is True
+        assert "SYNTHETIC" in capfd.readouterr().err
+    finally:
+        side.write_text(saved)

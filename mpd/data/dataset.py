@@ -22,7 +22,7 @@ import numpy as np
 
 from mpd.data.definition import ResolvedDefinition, load_definition
 from mpd.data.planning import problem_seed
-from mpd.data.storage import read_chunk, read_sidecar
+from mpd.data.storage import map_chunk, read_sidecar
 
 SPLITS = ("train", "val", "test")
 
@@ -35,7 +35,7 @@ class Dataset:
     task: str
     q_start: np.ndarray  # (P, dof) float64
     q_goal: np.ndarray  # (P, dof) float64
-    paths: np.ndarray  # (P, n_points, dof) float32
+    paths: PathArray | np.ndarray  # (P, n_points, dof) float32: read from the chunks where indexed (PathArray)
     control_points: np.ndarray  # (P, n_control_points, dof) float32
     fit_free: np.ndarray  # (P,) the fitted B-spline is collision free (sphere model, training scene, margin 0)
     context_id: np.ndarray  # (P,) int64
@@ -53,11 +53,80 @@ class Dataset:
         """The paths of one split (``train``/``val``/``test``) or of a boolean/index selection."""
         sel = self.split == SPLITS.index(which) if isinstance(which, str) else np.asarray(which)
         arrays = {
-            k: (v[sel] if isinstance(v, np.ndarray) else v)
+            k: (v[sel] if isinstance(v, np.ndarray) else v.take(sel) if isinstance(v, PathArray) else v)
             for k, v in self.__dict__.items()
             if k not in ("name", "task", "info")
         }
         return Dataset(self.name, self.task, info=self.info, **arrays)
+
+
+class PathArray:
+    """The dense paths of a dataset without holding them: rows are read from the memory-mapped chunks where they are
+    indexed (``ds.paths[i]``, ``ds.paths[mask]``, ``ds.paths[:, 0]``, ``blocks``), so that loading a paper-size
+    dataset (EnvSpheres3D: 2 M paths, ~7 GB as float32) costs no more memory than its contexts and control points.
+    Row r < n is forward path r; row n + r is its reversed copy. ``np.asarray(paths)`` reads them all."""
+
+    def __init__(self, chunks: list[np.ndarray], keep: list[np.ndarray], rows: np.ndarray | None = None):
+        self._chunks = chunks  # per chunk: its (contexts, n_points, dof) "path" member, memory-mapped
+        self._keep = keep  # per chunk: the rows kept (success and a fit in range)
+        sizes = np.array([len(k) for k in keep], dtype=np.int64)
+        self._n_fwd = int(sizes.sum())
+        self._chunk_of = np.repeat(np.arange(len(keep), dtype=np.int32), sizes)
+        self._row_of = np.concatenate(keep).astype(np.int64) if keep else np.zeros(0, dtype=np.int64)
+        self._rows = np.arange(2 * self._n_fwd, dtype=np.int64) if rows is None else rows
+        first = next((c for c in chunks if len(c)), None)
+        self._tail = tuple(first.shape[1:]) if first is not None else (0, 0)
+        self.dtype = first.dtype if first is not None else np.dtype(np.float32)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self._rows), *self._tail)
+
+    @property
+    def ndim(self) -> int:
+        return 3
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def take(self, sel) -> PathArray:
+        """The rows ``sel`` (an index array or a boolean mask), still unread."""
+        out = object.__new__(PathArray)
+        out.__dict__.update(self.__dict__)
+        out._rows = self._rows[sel]
+        return out
+
+    def _read(self, rows: np.ndarray) -> np.ndarray:
+        fwd = rows % self._n_fwd if self._n_fwd else rows
+        out = np.empty((len(rows), *self._tail), dtype=self.dtype)
+        chunk = self._chunk_of[fwd]
+        for c in np.unique(chunk):
+            sel = np.flatnonzero(chunk == c)
+            local = self._row_of[fwd[sel]]  # rows within chunk c
+            order = np.argsort(local, kind="stable")  # ascending reads of the mapped file
+            out[sel[order]] = self._chunks[c][local[order]]
+        rev = rows >= self._n_fwd
+        out[rev] = out[rev, ::-1]
+        return out
+
+    def __getitem__(self, key):
+        first, rest = (key[0], key[1:]) if isinstance(key, tuple) else (key, ())
+        rows = self._rows[first]
+        if np.ndim(rows) == 0:
+            out = self._read(np.array([rows]))[0]
+            return out[rest] if rest else out
+        out = self._read(np.asarray(rows))
+        return out[(slice(None), *rest)] if rest else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self._read(self._rows)
+        return out if dtype is None else out.astype(dtype)
+
+    def blocks(self, size: int = 10_000):
+        """(start, stop, paths[start:stop]) over all rows, ``size`` at a time."""
+        for start in range(0, len(self), size):
+            stop = min(start + size, len(self))
+            yield start, stop, self._read(self._rows[start:stop])
 
 
 def split_of_contexts(n_contexts: int, seed: int, val: float, test: float) -> np.ndarray:
@@ -110,21 +179,28 @@ def load_dataset(
 
 def _assemble(rd: ResolvedDefinition) -> Dataset:
     d, task = rd.definition, rd.task
-    chunks = [read_chunk(rd.data_dir, i) for i in range(d.n_chunks)]
-    plan_time = np.concatenate([np.asarray(read_sidecar(rd.data_dir, i)["plan_time"]) for i in range(d.n_chunks)])
-    cat = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    # memory-mapped: every field but the dense paths is gathered (contexts, control points, flags); the paths stay
+    # in the chunk files and are read where they are indexed (PathArray)
+    chunks = [map_chunk(rd.data_dir, i) for i in range(d.n_chunks)]
+    sides = [read_sidecar(rd.data_dir, i) for i in range(d.n_chunks)]
+    plan_time = np.concatenate([np.asarray(side["plan_time"]) for side in sides])
+    synthetic = any(side.get("synthetic") for side in sides)
+    if synthetic:
+        print(f"{rd.name}: SYNTHETIC data (random paths, for measurements only)", file=sys.stderr)
+    cat = {k: np.concatenate([np.asarray(c[k]) for c in chunks]) for k in chunks[0] if k != "path"}
     keep = cat["success"] & cat["fit_in_range"]
+    keep_per_chunk = [np.flatnonzero(np.asarray(c["success"]) & np.asarray(c["fit_in_range"])) for c in chunks]
     ids = cat["context_id"][keep]
     split = split_of_contexts(d.n_contexts, d.seed, d.split.val, d.split.test)[ids]
     qs, qg = cat["q_start"][keep], cat["q_goal"][keep]
-    paths, cps = cat["path"][keep], cat["control_points"][keep]
+    cps = cat["control_points"][keep]
     n = len(ids)
     ds = Dataset(
         name=rd.name,
         task=task.name,
         q_start=np.concatenate([qs, qg]),
         q_goal=np.concatenate([qg, qs]),
-        paths=np.concatenate([paths, paths[:, ::-1]]),
+        paths=PathArray([c["path"] for c in chunks], keep_per_chunk),
         control_points=np.concatenate([cps, cps[:, ::-1]]),
         fit_free=np.concatenate([cat["fit_free"][keep]] * 2),
         context_id=np.concatenate([ids, ids]),
@@ -150,5 +226,6 @@ def _assemble(rd: ResolvedDefinition) -> Dataset:
         "figures": lock.get("figures"),
         "definition": lock.get("definition"),
         "task_sha256": task.file_hash,
+        "synthetic": synthetic,
     }
     return ds

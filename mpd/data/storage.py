@@ -119,6 +119,32 @@ def read_chunk(directory: Path, i: int) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def map_chunk(directory: Path, i: int) -> dict[str, np.ndarray]:
+    """The arrays of chunk i memory-mapped (read-only), read from disk only where indexed: a chunk archive is an
+    uncompressed zip, so each ``.npy`` member is a contiguous range of the file."""
+    path = directory / chunk_name(i)
+    out = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
+        for info in zf.infolist():
+            if info.compress_type != zipfile.ZIP_STORED:  # not written by npz_bytes: read it the ordinary way
+                return read_chunk(directory, i)
+            f.seek(info.header_offset)
+            local = f.read(30)  # the member's local header: its name and extra field lengths at bytes 26-29
+            start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
+            f.seek(start)
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            name = info.filename[: -len(".npy")]
+            if dtype.hasobject:
+                raise ValueError(f"{path}: member {name} holds Python objects")
+            if int(np.prod(shape)) == 0:
+                out[name] = np.zeros(shape, dtype=dtype)
+                continue
+            out[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order="F" if fortran else "C")
+    return out
+
+
 def remove_chunk(directory: Path, i: int) -> None:
     for name in (chunk_name(i), sidecar_name(i)):
         (directory / name).unlink(missing_ok=True)

@@ -272,6 +272,8 @@ def resolve(
         else:
             # a run writes only the cache (create_lock=False)
             data = load_dataset(rd, progress=progress, create_lock=False, executor=executor, address=address)
+            if data.info.get("synthetic"):
+                raise ValueError(f"{task_name}: dataset {rd.name} is SYNTHETIC (random paths): never used by a run")
         n_ctx = ts.n_contexts or spec.data.n_contexts
         scenes = sorted(
             {(bool(c.p["extra_objects"]), float(c.p["rotation_deg"] or 0.0)) for c in cells if c.p["task"] == task_name}

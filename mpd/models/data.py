@@ -115,6 +115,15 @@ def training_arrays(task: Task, dataset, parametrization: str):
     param = make_parametrization(task, parametrization)
     if parametrization == "bspline":
         w = dataset.control_points
+    elif hasattr(dataset.paths, "blocks"):  # fitted block by block: the dense paths are never all in memory
+        w = None
+        for start, stop, block in dataset.paths.blocks():
+            fit = param.fit(block)
+            if w is None:
+                w = np.empty((len(dataset.paths), *fit.shape[1:]), dtype=fit.dtype)
+            w[start:stop] = fit
+        if w is None:
+            w = param.fit(np.asarray(dataset.paths))
     else:
         w = param.fit(dataset.paths)
     x = np.ascontiguousarray(param.free_rows(w), dtype=np.float32)
