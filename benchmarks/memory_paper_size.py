@@ -131,8 +131,22 @@ def _peak_rss(cmd: list[str], env: dict) -> tuple[float, float, int]:
     return usage.ru_maxrss / 2**20, time.perf_counter() - t, proc.returncode  # ru_maxrss: KiB on Linux
 
 
+def _forget_models(definition: Path) -> None:
+    """Remove cached models trained on this synthetic dataset, so that the `train` probe trains (not finds) one."""
+    import shutil
+
+    from mpd.data.definition import load_definition
+    from mpd.models.train import list_models
+
+    lock = json.loads((load_definition(definition).data_dir / "lock.json").read_text())
+    for m in list_models(TASK):
+        if m.get("dataset_hash") == lock["content_hash"]:
+            shutil.rmtree(Path(m["path"]).parent)
+
+
 def measure(definition: Path, steps: int) -> dict:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
+    _forget_models(definition)
     out = {}
     rss, wall, rc = _peak_rss([sys.executable, "-c", PROBE["load"], str(definition)], env)
     out["load"] = {"peak_rss_gib": round(rss, 3), "wall_s": round(wall, 1), "exit_code": rc}

@@ -59,6 +59,7 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
     click.echo(f"dataset {name}")
     ds = load_dataset(name)
     arrays = training_arrays(task, ds, parametrization)
+    del ds  # the training arrays hold what training needs; a paper-size dataset's control points are ~2 GB
     path = train_model(arrays, kind, task.spec.model, spec, seed=seed, device=device, shipped=not no_shipped)
     click.echo(f"model: {path}")
     if mlflow:

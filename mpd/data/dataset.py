@@ -183,37 +183,50 @@ def _assemble(rd: ResolvedDefinition) -> Dataset:
     # in the chunk files and are read where they are indexed (PathArray)
     chunks = [map_chunk(rd.data_dir, i) for i in range(d.n_chunks)]
     sides = [read_sidecar(rd.data_dir, i) for i in range(d.n_chunks)]
-    plan_time = np.concatenate([np.asarray(side["plan_time"]) for side in sides])
     synthetic = any(side.get("synthetic") for side in sides)
     if synthetic:
         print(f"{rd.name}: SYNTHETIC data (random paths, for measurements only)", file=sys.stderr)
-    cat = {k: np.concatenate([np.asarray(c[k]) for c in chunks]) for k in chunks[0] if k != "path"}
-    keep = cat["success"] & cat["fit_in_range"]
     keep_per_chunk = [np.flatnonzero(np.asarray(c["success"]) & np.asarray(c["fit_in_range"])) for c in chunks]
-    ids = cat["context_id"][keep]
+    n = int(sum(len(k) for k in keep_per_chunk))
+
+    def both(field: str, swap: str | None = None, reverse: bool = False, dtype=None) -> np.ndarray:
+        """The kept rows of ``field``, forward then the reversed copies, filled chunk by chunk into one array (no
+        full-size intermediate: a paper-size dataset's control points are ~2 GB)."""
+        first = chunks[0][field]
+        out = np.empty((2 * n, *first.shape[1:]), dtype=dtype or first.dtype)
+        o = 0
+        for c, k in zip(chunks, keep_per_chunk):
+            out[o : o + len(k)] = c[field][k]
+            out[n + o : n + o + len(k)] = (c[swap] if swap else c[field])[k]
+            o += len(k)
+        if reverse:
+            out[n:] = out[n:, ::-1]
+        return out
+
+    ids = both("context_id")
     split = split_of_contexts(d.n_contexts, d.seed, d.split.val, d.split.test)[ids]
-    qs, qg = cat["q_start"][keep], cat["q_goal"][keep]
-    cps = cat["control_points"][keep]
-    n = len(ids)
+    kept_plan = np.concatenate([np.asarray(side["plan_time"])[k] for side, k in zip(sides, keep_per_chunk)])
     ds = Dataset(
         name=rd.name,
         task=task.name,
-        q_start=np.concatenate([qs, qg]),
-        q_goal=np.concatenate([qg, qs]),
+        q_start=both("q_start", swap="q_goal"),
+        q_goal=both("q_goal", swap="q_start"),
         paths=PathArray([c["path"] for c in chunks], keep_per_chunk),
-        control_points=np.concatenate([cps, cps[:, ::-1]]),
-        fit_free=np.concatenate([cat["fit_free"][keep]] * 2),
-        context_id=np.concatenate([ids, ids]),
+        control_points=both("control_points", reverse=True),
+        fit_free=both("fit_free"),
+        context_id=ids,
         reversed=np.repeat([False, True], n),
-        split=np.concatenate([split, split]),
-        plan_time=np.concatenate([plan_time[keep]] * 2),
+        split=split,
+        plan_time=np.concatenate([kept_plan] * 2),
     )
     if task.ee_goal:
         from mpd.data.contexts import ee_goal_pose
 
-        p_start, r_start = ee_goal_pose(task, qs) if n else (np.zeros((0, 3)), np.zeros((0, 3, 3)))
-        ds.ee_pos = np.concatenate([cat["ee_pos"][keep], p_start])
-        ds.ee_rot = np.concatenate([cat["ee_rot"][keep], r_start])
+        # the reversed copies' goal pose is FK of the forward start, in blocks (FK keeps every link's frame)
+        ds.ee_pos, ds.ee_rot = both("ee_pos"), both("ee_rot")
+        for a in range(0, n, 50_000):
+            b = min(a + 50_000, n)
+            ds.ee_pos[n + a : n + b], ds.ee_rot[n + a : n + b] = ee_goal_pose(task, ds.q_start[a:b])
     try:
         lock = json.loads((rd.data_dir / "lock.json").read_text())
     except FileNotFoundError:

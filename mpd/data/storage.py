@@ -130,10 +130,17 @@ def map_chunk(directory: Path, i: int) -> dict[str, np.ndarray]:
                 return read_chunk(directory, i)
             f.seek(info.header_offset)
             local = f.read(30)  # the member's local header: its name and extra field lengths at bytes 26-29
-            start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
+            start = (
+                info.header_offset
+                + 30
+                + int.from_bytes(local[26:28], "little")
+                + int.from_bytes(local[28:30], "little")
+            )
             f.seek(start)
             version = np.lib.format.read_magic(f)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
             shape, fortran, dtype = read_header(f)
             name = info.filename[: -len(".npy")]
             if dtype.hasobject:
@@ -141,7 +148,9 @@ def map_chunk(directory: Path, i: int) -> dict[str, np.ndarray]:
             if int(np.prod(shape)) == 0:
                 out[name] = np.zeros(shape, dtype=dtype)
                 continue
-            out[name] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order="F" if fortran else "C")
+            out[name] = np.memmap(
+                path, dtype=dtype, mode="r", offset=f.tell(), shape=shape, order="F" if fortran else "C"
+            )
     return out
 
 
