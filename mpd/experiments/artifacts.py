@@ -400,6 +400,8 @@ def train_models(
 
 def _ray_chain(chain: list) -> list[dict]:
     """Ray task: train a chain of models in this worker's cache; return each model's files for the driver."""
+    import os
+
     from mpd import distributed
 
     distributed.single_threaded()
@@ -407,6 +409,10 @@ def _ray_chain(chain: list) -> list[dict]:
     for job, path in zip(chain, _train_chain(chain, False, 1)):
         meta = json.loads((path.parent / "meta.json").read_text())
         meta["node"] = distributed.node_id()
+        # recorded here too: on a shared cache the driver finds this very file and writes nothing
+        tmp = path.parent / f".meta.json.node-{os.getpid()}"
+        tmp.write_text(json.dumps(meta, indent=2, sort_keys=True))
+        os.replace(tmp, path.parent / "meta.json")
         data = path.read_bytes()
         out.append(
             {"task": job[0], "identity": meta["identity"], "model": data, "meta": meta, "sha256": file_sha256(path)}
