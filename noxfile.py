@@ -9,6 +9,8 @@ re-installed only when ``pyproject.toml`` changes: a second ``nox -s demo`` star
     nox -s report -- RUN|SPEC     regenerate a run's figures and tables from its results table
     nox -s view -- RUN [--web]    open the Rerun viewer on a run's recordings
     nox -s benchmarks             pytest-benchmark suites, JSON under .benchmarks/
+    nox -s gpu                    the prepared GPU check on a CUDA machine (benchmarks/gpu_check.py): JSON summary
+    nox -s gpu_wheels             the wheels the offline lent GPU machine lacks, for its Python 3.12, into .whl/
 """
 
 from __future__ import annotations
@@ -114,3 +116,30 @@ def benchmarks(session: nox.Session) -> None:
         *session.posargs,
         external=True,
     )
+
+
+@nox.session(venv_backend="none")
+def gpu(session: nox.Session) -> None:
+    """The GPU check on a CUDA machine with internet: CUDA tests, plan and network benchmarks on the GPU, a short
+    training, one JSON summary (.benchmarks/gpu.json, or the path after --). Installs mpd into the interpreter
+    running nox, whose torch must be a CUDA build (the pinned torch from PyPI is one on Linux)."""
+    session.run(sys.executable, "-m", "pip", "install", "-q", "-e", f"{ROOT}[dev]", external=True)
+    out = session.posargs[0] if session.posargs else str(ROOT / ".benchmarks" / "gpu.json")
+    session.run(sys.executable, str(ROOT / "benchmarks" / "gpu_check.py"), "--out", out, external=True)
+
+
+# what the lent GPU machine's image lacks of mpd's dependencies (its python3 holds torch, numpy, scipy, pandas,
+# matplotlib, pytest, ...): pybullet has no wheel for it (its tests skip there), rerun and ray are not needed
+GPU_WHEELS = ["ompl==2.0.1", "pytorch_kinematics==0.10.0", "arm_pytorch_utilities", "pytorch_seed"]
+
+
+@nox.session(venv_backend="none")
+def gpu_wheels(session: nox.Session) -> None:
+    """Download, here, the wheels the offline GPU machine needs (Python 3.12, manylinux x86-64) into .whl/ (ignored by
+    git); carry `.whl` to it and run benchmarks/gpu_check.py there as its docstring says."""
+    dest = ROOT / ".whl"
+    platforms = ["manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"]
+    args = ["--no-deps", "--only-binary=:all:", "--python-version", "3.12", "--implementation", "cp"]
+    for p in platforms:
+        args += ["--platform", p]
+    session.run(sys.executable, "-m", "pip", "download", "-q", *args, "-d", str(dest), *GPU_WHEELS, external=True)

@@ -1,0 +1,34 @@
+"""The prepared GPU check (benchmarks/gpu_check.py) runs end to end, here on the CPU, so that the command is known to
+work before a GPU machine is lent: every section present, none failed, the numbers sane."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_gpu_check_runs_every_section_on_the_cpu(tmp_path):
+    out = tmp_path / "gpu.json"
+    cmd = [sys.executable, str(REPO / "benchmarks" / "gpu_check.py"), "--device", "cpu", "--quick", "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=tmp_path)  # any folder
+    s = json.loads(out.read_text())
+    assert proc.returncode == 0 and s["errors"] == [], proc.stderr[-3000:]
+    assert s["environment"]["device"] == "cpu" and s["environment"]["torch"] == torch.__version__
+    tests = s["cuda_tests"]
+    assert tests["failed"] == 0 and tests["passed"] + tests["skipped"] >= 1
+    if not torch.cuda.is_available():
+        assert tests["passed"] == 0  # the CUDA tests skip on a CPU
+    for method in ("mpd", "dprior"):
+        plan = s["plans"][f"{method}/EnvSimple2D-RobotPointMass2D"]
+        assert plan["median_s"] > 0 and plan["breakdown"]["network"] > 0
+    assert s["plans"]["mpd/EnvSimple2D-RobotPointMass2D"]["breakdown"]["cost_gradient_calls"] > 0
+    net = s["network"]
+    assert net["parameters"] > 1e6 and net["forward_batch100_fp32_ms"] > 0 and net["train_steps_per_s_batch32_bf16"] > 0
+    tr = s["training"]
+    assert tr["finite"] and tr["loads_on_cpu"] and tr["device_recorded"] == "cpu" and tr["steps"] == 10
