@@ -523,8 +523,8 @@ def test_scale_shrinks_every_cell_and_touches_nothing_full_size(tmp_path, monkey
         big, rd = full.definition(name), small.definition(name)
         assert rd.identity != big.identity and rd.name == f"{big.name}-x1e-05"
         d = rd.definition
-        assert d.n_contexts == 64 and d.n_contexts // d.chunk_size >= 4
-        assert (d.split.val + d.split.test) * d.n_contexts >= 4 * small.data.n_contexts
+        assert d.n_contexts == 128 and d.n_contexts // d.chunk_size >= 4
+        assert (d.split.val + d.split.test) * d.n_contexts >= 16 * small.data.n_contexts
         assert not rd.lock_path.exists()
     assert scale_spec(full, 1.0) is full
     with pytest.raises(ConfigError, match="--scale"):

@@ -392,7 +392,7 @@ def _check_combinations(spec: Spec, path) -> None:
 
 
 # --scale: the floors that keep a shrunk run meaningful end to end
-SCALE_MIN_CONTEXTS, SCALE_MIN_SAMPLES, SCALE_MIN_STEPS, SCALE_MIN_DATASET = 2, 8, 20, 64
+SCALE_MIN_CONTEXTS, SCALE_MIN_SAMPLES, SCALE_MIN_STEPS, SCALE_MIN_DATASET = 2, 8, 20, 128
 
 
 def _scaled(n: int, factor: float, floor: int) -> int:
@@ -402,7 +402,7 @@ def _scaled(n: int, factor: float, floor: int) -> int:
 def scale_spec(spec: Spec, factor: float) -> Spec:
     """The same spec with every cell shrunk by ``factor`` (0 < factor <= 1): evaluation contexts, samples, training
     steps (of the profile and of `training.steps` axes) and dataset size, each with a floor (2 contexts, 8 samples,
-    20 steps, 64 dataset contexts). How a user tries a cluster (or a laptop) on a big spec before the real run: the
+    20 steps, 128 dataset contexts). How a user tries a cluster (or a laptop) on a big spec before the real run: the
     matrix, the methods and the pipeline are unchanged; its results are not the spec's. Its own hash, run folder,
     dataset identities and model identities, so nothing full-size is touched."""
     if not 0 < factor <= 1:
@@ -442,8 +442,8 @@ def scale_spec(spec: Spec, factor: float) -> Spec:
 
 
 def scaled_definition(rd, factor: float | None, n_eval: int):
-    """A dataset definition shrunk by ``factor`` (None: ``rd`` itself): its contexts (>= 64) in >= 4 chunks, and
-    held-out fractions raised so that it holds >= 4 x ``n_eval`` held-out contexts. A definition of its own (name
+    """A dataset definition shrunk by ``factor`` (None: ``rd`` itself): its contexts (>= 128) in >= 4 chunks, and
+    held-out fractions raised so that it holds >= 16 x ``n_eval`` held-out contexts (at most half of it). A definition of its own (name
     ``<name>-x<factor>``, its own identity and cache folder; no lock file is written for it)."""
     if factor is None or factor >= 1:
         return rd
@@ -451,7 +451,9 @@ def scaled_definition(rd, factor: float | None, n_eval: int):
 
     defn = rd.definition
     n = _scaled(defn.n_contexts, factor, SCALE_MIN_DATASET)
-    held = min(0.25, max(defn.split.val + defn.split.test, 4.0 * n_eval / n) / 2)
+    # 16 held-out contexts per evaluation context: as few as 1 in 8 held-out paths passes the evaluation's minimum
+    # start-goal distance (EnvNarrowPassageDense2D)
+    held = min(0.25, max(defn.split.val + defn.split.test, 16.0 * n_eval / n) / 2)
     split = dataclasses.replace(defn.split, val=max(defn.split.val, held), test=max(defn.split.test, held))
     new = dataclasses.replace(
         defn, name=f"{defn.name}-x{factor:g}", n_contexts=n, chunk_size=max(1, math.ceil(n / 4)), split=split
