@@ -163,16 +163,30 @@ def _model_identity(task: Task, ts, content_hash: str, kind: str, par: str, trai
     return model_identity(content_hash, kind, par, settings, task.spec.model, training_settings(task, ts, training), 0)
 
 
-def _ready_model(task: Task, ts, content_hash: str, key: tuple) -> tuple[str, str] | None:
-    """(identity, "cache" | "shipped") when the model of ``key`` needs no training, else None."""
+def _available(task_name: str, kind: str, par: str, ident: str) -> str | None:
+    """Where the model of this identity is without training: "cache", "shipped" (a verified shipped prior, which
+    train_model installs) or None."""
     from mpd.models import shipped
     from mpd.models.train import model_dir
 
+    if (model_dir(task_name, kind, par, ident) / "model.pt").is_file():
+        return "cache"
+    return "shipped" if shipped.find(task_name, kind, par, ident) is not None else None
+
+
+def _job_identity(job) -> str:
+    from mpd.models.train import model_identity
+
+    _, kind, par, arrays, ms, ts, _ = job
+    return model_identity(arrays.dataset_hash, kind, par, arrays.parametrization_settings, ms, ts, 0)
+
+
+def _ready_model(task: Task, ts, content_hash: str, key: tuple) -> tuple[str, str] | None:
+    """(identity, "cache" | "shipped") when the model of ``key`` needs no training, else None."""
     kind, par, tr = key
     ident = _model_identity(task, ts, content_hash, kind, par, tr)
-    if (model_dir(task.name, kind, par, ident) / "model.pt").is_file():
-        return ident, "cache"
-    return (ident, "shipped") if shipped.find(task.name, kind, par, ident) is not None else None
+    where = _available(task.name, kind, par, ident)
+    return (ident, where) if where else None
 
 
 def _digest_if_enough(task: Task, ts, rd, keys) -> tuple | None:
@@ -324,11 +338,10 @@ def _artifact(path: Path, key: tuple, source: str | None) -> ModelArtifact:
 
 
 def _in_cache(job) -> bool:
-    from mpd.models.train import model_dir, model_identity
+    from mpd.models.train import model_dir
 
-    task_name, kind, par, arrays, ms, ts, _ = job
-    ident = model_identity(arrays.dataset_hash, kind, par, arrays.parametrization_settings, ms, ts, 0)
-    return (model_dir(task_name, kind, par, ident) / "model.pt").is_file()
+    task_name, kind, par, *_ = job
+    return (model_dir(task_name, kind, par, _job_identity(job)) / "model.pt").is_file()
 
 
 def _steps_last(training: tuple) -> tuple:
@@ -369,15 +382,9 @@ def train_models(
     recipe form a chain that runs in one worker, in increasing steps. ``executor="ray"``: each chain is a Ray task
     (one GPU when the cluster has GPUs, else one CPU), retried by Ray when its worker dies (it resumes from the
     worker's ``last.pt``); the models come back through the object store, checked by sha256 on arrival."""
-    from mpd.models import shipped
-    from mpd.models.train import model_dir, model_identity
 
     def exists(job) -> bool:  # in the cache, or a shipped prior that train_model will install without training
-        task_name, kind, par, arrays, ms, ts, _ = job
-        ident = model_identity(arrays.dataset_hash, kind, par, arrays.parametrization_settings, ms, ts, 0)
-        if (model_dir(task_name, kind, par, ident) / "model.pt").is_file():
-            return True
-        return shipped.find(task_name, kind, par, ident) is not None
+        return _available(job[0], job[1], job[2], _job_identity(job)) is not None
 
     chains: dict[tuple, list] = {}
     for j in sorted((j for j in jobs if not exists(j)), key=lambda j: j[5].steps):

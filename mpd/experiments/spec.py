@@ -443,8 +443,8 @@ def scale_spec(spec: Spec, factor: float) -> Spec:
 
 def scaled_definition(rd, factor: float | None, n_eval: int):
     """A dataset definition shrunk by ``factor`` (None: ``rd`` itself): its contexts (>= 128) in >= 4 chunks, and
-    held-out fractions raised so that it holds >= 16 x ``n_eval`` held-out contexts (at most half of it). A definition of its own (name
-    ``<name>-x<factor>``, its own identity and cache folder; no lock file is written for it)."""
+    held-out fractions raised so that it holds >= 16 x ``n_eval`` held-out contexts (at most half of it). A
+    definition of its own (name ``<name>-x<factor>``, its own identity and cache folder; no lock file is written)."""
     if factor is None or factor >= 1:
         return rd
     from mpd.data.definition import ResolvedDefinition, identity_of
