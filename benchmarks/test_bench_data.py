@@ -2,7 +2,10 @@
 
 One path = one context (start and goal from the pose regions by IK, or a random start) + RRTConnect +
 simplifyMax + resampling + B-spline fit + the dense collision check of the fit: everything a worker does per
-context. The target is >= 2 paths/s per core. The time split (contexts, planning) is in ``extra_info``.
+context. One chunk of 50 contexts (the chunk size of the -small definitions; a chunk's IK problems are solved in
+batches), timed three times after a warm-up (the compiled checker's cache, torch's first calls); the median
+round is the figure. The target (issue 14) is >= 15 paths/s per core. The time split (contexts, planning) is in
+``extra_info``.
 
 Run: ``pytest benchmarks/test_bench_data.py -m benchmark --benchmark-only --benchmark-enable``
 (``nox -s benchmarks``).
@@ -14,11 +17,12 @@ import pytest
 import torch
 
 from mpd.data.definition import DatasetDefinition, resolve
-from mpd.data.generate import compute_chunk
+from mpd.data.generate import _tools, compute_chunk
 
 pytestmark = pytest.mark.benchmark
 
-N_CONTEXTS = 20
+N_CONTEXTS = 50
+ROUNDS = 3
 
 
 @pytest.fixture(autouse=True)
@@ -39,18 +43,22 @@ def test_warehouse_paths_per_second(benchmark):
             seed=123,
         )
     )
-    out = {}
+    checker = _tools(rd)[0]
+    checker.valid(checker.task.robot.random_q(4).numpy())  # warm-up: loads the compiled kernels
+    rounds = []
 
     def run():
-        out["arrays"], out["meta"] = compute_chunk(rd, 0)
+        arrays, meta = compute_chunk(rd, 0)
+        rounds.append((int(arrays["success"].sum()), meta))
 
-    benchmark.pedantic(run, rounds=1, iterations=1, warmup_rounds=0)
-    n_ok = int(out["arrays"]["success"].sum())
-    meta = out["meta"]
+    benchmark.pedantic(run, rounds=ROUNDS, iterations=1, warmup_rounds=0)
+    assert len({n for n, _ in rounds}) == 1  # every round computes the same chunk
+    n_ok, meta = sorted(rounds, key=lambda r: r[1]["wall_s"])[ROUNDS // 2]  # the median round
     info = {
         "paths": n_ok,
         "contexts": N_CONTEXTS,
         "paths_per_s_per_core": n_ok / meta["wall_s"],
+        "rounds_paths_per_s": [round(n / m["wall_s"], 2) for n, m in rounds],
         # CPU time of the process: the per-core figure even while other processes compete for the cores
         "paths_per_cpu_s": n_ok / meta["cpu_s"],
         "context_s_mean": sum(meta["context_time"]) / N_CONTEXTS,

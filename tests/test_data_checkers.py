@@ -60,3 +60,51 @@ def test_planning_is_seeded_and_valid():
     p = plan_path(task, task.env(extra_objects=True), qs, qg, seed=2)
     assert p is not None and p.shape == (128, 2)
     assert path_valid(SphereChecker(task, True, task.spec.collision.clearance), p, 0.01)
+
+
+def _boundary_states(checker, lo, hi, rng, n_pairs: int = 300, steps: int = 40) -> np.ndarray:
+    """States on both sides of the boundary of the valid set (by the numpy reference): bisection between a
+    valid and an invalid state, ``steps`` halvings, both ends kept."""
+    q = rng.uniform(lo, hi, (4 * n_pairs, len(lo)))
+    env, slf = checker.check(q)
+    ok = env & slf
+    a, b = q[ok][:n_pairs], q[~ok][:n_pairs]
+    m = min(len(a), len(b))
+    a, b = a[:m], b[:m]
+    for _ in range(steps):
+        mid = (a + b) / 2
+        e, s = checker.check(mid)
+        good = (e & s)[:, None]
+        a, b = np.where(good, mid, a), np.where(good, b, mid)
+    return np.concatenate([a, b])
+
+
+@pytest.mark.parametrize("task_name", list_tasks())
+def test_compiled_checker_is_the_numpy_checker(task_name):
+    """The compiled kernel (``SphereChecker.valid``, ``edge_valid``) against the numpy ``check`` it replaces in
+    the planner: random states and states within ~1e-12 of the valid set's boundary (either side), in the
+    training scene, with extra objects, rotated, with and without clearance."""
+    task = load_task(task_name)
+    lo, hi = task.robot.q_min.numpy(), task.robot.q_max.numpy()
+    rng = np.random.default_rng(1)
+    cl = task.spec.collision.clearance
+    for extra, rot, margin in [(False, 0.0, cl), (True, 0.0, 0.0), (True, 30.0, 0.01)]:
+        checker = SphereChecker(task, extra, margin, rot)
+        q = np.concatenate([rng.uniform(lo, hi, (2000, task.dof)), _boundary_states(checker, lo, hi, rng)])
+        env, slf = checker.check(q)
+        got = checker.valid(q)
+        assert 0.05 < got.mean() < 0.95
+        assert np.array_equal(got, env & slf), np.flatnonzero(got != (env & slf))[:5]
+    # edges: every state of edge_states, in any order, stopping at the first invalid one
+    checker = SphereChecker(task, False, cl)
+    step = 0.01
+    results = []
+    for _ in range(150):
+        a = rng.uniform(lo, hi)
+        b = a + rng.normal(size=task.dof) * rng.choice([0.02, 0.2, 1.0])
+        b = np.clip(b, lo, hi)
+        states = edge_states(a, b, step)
+        ref = bool(np.all(np.logical_and(*checker.check(states))))
+        results.append(ref)
+        assert checker.edge_valid(a, b, len(states)) == ref
+    assert 0 < sum(results) < len(results)  # both outcomes seen

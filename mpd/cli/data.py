@@ -190,12 +190,9 @@ def contexts(task_name, n, source, dataset, context_seed, extra_objects, rotatio
     task = load_task(task_name)
     if source == "held-out":
         from mpd.data.dataset import load_dataset
-        from mpd.data.definition import DATASETS_DIR
+        from mpd.data.generate import default_dataset
 
-        if dataset is None:  # the paper-size dataset when it has been generated here, else the small one
-            paper = f"{task.name}-paper"
-            dataset = paper if (DATASETS_DIR / f"{paper}.lock.json").exists() else f"{task.name}-small"
-        ds = load_dataset(dataset, generate_missing=False)
+        ds = load_dataset(dataset or default_dataset(task.name), generate_missing=False)
         try:
             cs = ec.for_scene(ec.task_contexts(task, ds, n, context_seed), task, extra_objects, rotation)
         except ValueError as e:

@@ -7,14 +7,6 @@ from pathlib import Path
 import click
 
 
-def default_dataset(task_name: str) -> str:
-    """The paper-size dataset when it has been generated here, else the small one."""
-    from mpd.data.definition import DATASETS_DIR
-
-    paper = f"{task_name}-paper"
-    return paper if (DATASETS_DIR / f"{paper}.lock.json").exists() else f"{task_name}-small"
-
-
 @click.command("train")
 @click.option("--task", "task_name", required=True, help="task name or task file")
 @click.option("--model", "kind", type=click.Choice(["diffusion", "cvae"]), default="diffusion", show_default=True)
@@ -55,6 +47,8 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
         spec = dataclasses.replace(
             spec, steps=steps, val_every=min(spec.val_every, steps), checkpoint_every=min(spec.checkpoint_every, steps)
         )
+    from mpd.data.generate import default_dataset
+
     name = dataset or default_dataset(task.name)
     click.echo(f"dataset {name}")
     ds = load_dataset(name)

@@ -69,6 +69,8 @@ def solve_ik(
     rot_tol_deg: float = 1.0,
     valid: Callable[[torch.Tensor], torch.Tensor] | None = None,
     q_ref: torch.Tensor | None = None,
+    q_restarts: torch.Tensor | None = None,
+    valid_target: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
 ) -> IKResult:
     """Configurations whose end-effector pose reaches targets (pos (N, 3), rot (N, 3, 3) or None for position
     only).
@@ -79,13 +81,26 @@ def solve_ik(
         valid: optional extra test of converged configurations (M, dof) -> (M,) bool, e.g. collision free.
         q_ref: optional (N, dof); among the successful restarts the one closest to it is returned
             (default: the successful restart with the lowest index).
+        q_restarts: optional (N, R, dof): the initial configurations of every restart, instead of drawing them
+            from ``generator`` (a batch of targets whose restarts come from separate streams; a target's result
+            does not depend on the other targets of the batch).
+        valid_target: like ``valid`` but also given the target index (M,) of each configuration.
     """
     dtype = pos.dtype if pos.is_floating_point() else torch.float64
     pos = pos.to(dtype)
     rot = rot.to(dtype) if rot is not None else None
     N, R, dof = pos.shape[0], int(n_restarts), robot.dof
     lo, hi = robot.limits(pos)
-    q = robot.random_q(N * R, generator, dtype=dtype).reshape(N, R, dof).to(pos.device)
+    if q_restarts is not None:
+        if q_restarts.shape != (N, R, dof):
+            raise ValueError(f"q_restarts has shape {tuple(q_restarts.shape)}, expected {(N, R, dof)}")
+        q = q_restarts.to(device=pos.device, dtype=dtype).clone()
+    else:
+        q = robot.random_q(N * R, generator, dtype=dtype).reshape(N, R, dof).to(pos.device)
+    if valid_target is not None:
+        if valid is not None:
+            raise ValueError("give valid or valid_target, not both")
+        valid = _with_targets(valid_target, R)
     if q_init is not None:
         q[:, 0] = torch.minimum(torch.maximum(q_init.to(q), lo), hi)
     q = q.reshape(N * R, dof)
@@ -108,7 +123,7 @@ def solve_ik(
         if conv.any():
             new = idx[conv]
             active[new] = False
-            ok[new] = _valid(valid, q[new])
+            ok[new] = _valid(valid, q[new], new)
             if q_ref is None:  # one success per target is enough: stop its other restarts
                 solved = ok.view(N, R).any(1)
                 active &= ~solved.repeat_interleave(R)
@@ -131,15 +146,26 @@ def solve_ik(
     within = (ep < pos_tol) & (er < rot_tol)
     late = within & active  # reached the tolerances but not a tenth of them
     if late.any():
-        ok[late] = _valid(valid, q[late])
+        ok[late] = _valid(valid, q[late], late.nonzero()[:, 0])
     ok &= within
     return _choose(q.view(N, R, dof), ok.view(N, R), ep.view(N, R), er.view(N, R), q_ref)
 
 
-def _valid(valid, q: torch.Tensor) -> torch.Tensor:
+class _with_targets:
+    """``valid(q)`` for rows of the (N * R) batch from ``valid_target(q, target)``: the rows are passed along."""
+
+    def __init__(self, fn, R: int):
+        self.fn, self.R = fn, R
+
+    def rows(self, q: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        return self.fn(q, torch.div(rows, self.R, rounding_mode="floor"))
+
+
+def _valid(valid, q: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
     if valid is None or len(q) == 0:
         return torch.ones(len(q), dtype=torch.bool, device=q.device)
-    return torch.as_tensor(valid(q), dtype=torch.bool, device=q.device)
+    out = valid.rows(q, rows) if isinstance(valid, _with_targets) else valid(q)
+    return torch.as_tensor(out, dtype=torch.bool, device=q.device)
 
 
 def _choose(q, ok, ep, er, q_ref) -> IKResult:
