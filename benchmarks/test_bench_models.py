@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from cpu_peak import peak_gflops
 
 from mpd.models import DiffusionModel
 from mpd.models.train import make_optimizer
@@ -57,7 +58,23 @@ def test_forward_batch100(benchmark, threads, horizon):
         with torch.no_grad():
             return model(x, 50, ctx)
 
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as fc:
+        forward()
+    flops = fc.get_total_flops()
     out = benchmark.pedantic(forward, rounds=20, warmup_rounds=2)
+    median = benchmark.stats.stats.median
+    peak = peak_gflops(threads)
+    achieved = flops / 1e9 / median
+    benchmark.extra_info.update(
+        gflop_per_forward=flops / 1e9, gflop_per_s=achieved, peak_fp32_gflop_per_s=peak["fp32"],
+        fraction_of_fp32_peak=achieved / peak["fp32"],
+    )  # fmt: skip
+    print(
+        f"forward: {flops / 1e9:.2f} GFLOP, {achieved:.0f} GFLOP/s = {100 * achieved / peak['fp32']:.0f} % of the "
+        f"nominal fp32 peak of {threads} cores ({peak['fp32']:.0f} GFLOP/s at {peak['ghz']:.2f} GHz)"
+    )
     assert out.shape == x.shape
 
 
@@ -126,12 +143,15 @@ def test_training_steps_per_s_by_precision(benchmark, threads, case, precision):
     flops = fc.get_total_flops()
     loss = benchmark.pedantic(step, rounds=8 if case == "2d" else 4, warmup_rounds=1)
     median = benchmark.stats.stats.median
+    peak = peak_gflops(threads)[precision]
     benchmark.extra_info.update(
         case=case, precision=precision, threads=threads, batch=batch, horizon=horizon, steps_per_s=1 / median,
-        gflop_per_step=flops / 1e9, gflop_per_s=flops / 1e9 / median,
+        gflop_per_step=flops / 1e9, gflop_per_s=flops / 1e9 / median, peak_gflop_per_s=peak,
+        fraction_of_peak=flops / 1e9 / median / peak,
     )  # fmt: skip
     print(
         f"\n{case} training step, {precision}, {threads} threads: {1 / median:.2f} steps/s, "
-        f"{flops / 1e9 / median:.0f} GFLOP/s"
+        f"{flops / 1e9 / median:.0f} GFLOP/s ({100 * flops / 1e9 / median / peak:.0f} % of the nominal {precision} "
+        "peak)"
     )
     assert torch.isfinite(loss)

@@ -108,3 +108,36 @@ def test_compiled_checker_is_the_numpy_checker(task_name):
         results.append(ref)
         assert checker.edge_valid(a, b, len(states)) == ref
     assert 0 < sum(results) < len(results)  # both outcomes seen
+
+
+def test_resampling_shares_states_by_length():
+    """``arc_length``: each edge gets one state plus its share of the rest in proportion to its grid count (at most
+    its grid count); the states of an EnvSpheres3D path (context 12138 of the -cpu dataset: one edge of 4 rad and
+    seven of 0.3-0.7 rad) are then spread evenly in arc length. ``v1`` (kept for the datasets generated with it)
+    gives about equal counts per edge: 16 of 127 states for more than half of the length."""
+    from mpd.data.planning import _allocate, _allocate_v1
+
+    grid = np.array([200, 26, 16, 25, 35, 19, 37, 21])
+    k = _allocate(127, grid.astype(float), np.ones(8, np.int64), grid)
+    assert k.sum() == 127 and (k >= 1).all() and (k <= grid).all()
+    ideal = 1 + (127 - 8) * grid / grid.sum()
+    assert np.abs(k - ideal).max() < 1.0
+    assert _allocate_v1(127, grid.astype(float), np.ones(8, np.int64), grid)[0] <= 17
+    # caps pass their share on: a tiny edge gets its whole grid, the rest goes to the long one
+    k = _allocate(50, np.array([1.0, 100.0]), np.ones(2, np.int64), np.array([1, 100]))
+    assert k.tolist() == [1, 49]
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        m = int(rng.integers(1, 12))
+        g = rng.integers(1, 60, m)
+        total = int(rng.integers(m, g.sum() + 1))
+        k = _allocate(total, g.astype(float), np.ones(m, np.int64), g)
+        assert k.sum() == total and (k >= 1).all() and (k <= g).all()
+    # a path of one long edge and seven short ones: states evenly spread along it
+    v = np.cumsum(np.vstack([np.zeros(7), np.full((1, 7), 1.5), rng.normal(scale=0.15, size=(7, 7))]), axis=0)
+    d = resample_path(v, 128, 0.02)
+    gaps = np.linalg.norm(np.diff(d, axis=0), axis=1)
+    assert gaps.max() < 2.5 * gaps.mean()
+    d1 = resample_path(v, 128, 0.02, "v1")
+    gaps1 = np.linalg.norm(np.diff(d1, axis=0), axis=1)
+    assert gaps1.max() > 4 * gaps1.mean()

@@ -676,6 +676,40 @@ def test_shipped_prior_is_found_by_identity_verified_and_reproduced_bit_for_bit(
     assert all(torch.equal(shipped_ema[k], retrained[k]) for k in shipped_ema)
 
 
+def test_a_bfloat16_shipped_prior_is_half_the_size_and_denoises_like_the_trained_one(tmp_path):
+    """Weights rounded to bfloat16 (the Panda-sized priors, whose float32 file exceeds the 10 MB limit): half the
+    file, loaded back as exactly the rounded float32 weights, and one denoising step's output within 2 % (relative
+    norm) of the trained model's; ``auto`` keeps float32 when it fits; a file too big either way is refused."""
+    from mpd.models import shipped
+
+    trained = train_model(
+        toy_arrays(n_val=4), "diffusion", TINY, tiny_training(steps=20), seed=4, progress=False, cache=tmp_path / "a"
+    )
+    p32 = shipped.ship(trained, tmp_path / "p32", weights_dtype="float32")
+    p16 = shipped.ship(trained, tmp_path / "p16", weights_dtype="bfloat16")
+    lock = json.loads(p16.with_name(p16.name.replace(".pt", ".lock.json")).read_text())
+    assert (
+        lock["weights_dtype"] == "bfloat16"
+        and lock["sha256"] != json.loads(p32.with_name(p32.name.replace(".pt", ".lock.json")).read_text())["sha256"]
+    )
+    assert p16.stat().st_size < 0.6 * p32.stat().st_size
+    a, b = load_model(p32), load_model(p16)
+    for (k, x), y in zip(a.network.state_dict().items(), b.network.state_dict().values()):
+        assert y.dtype == x.dtype, k
+        assert torch.equal(y, x.to(torch.bfloat16).to(x.dtype)), k
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(64, 8, 2, generator=g)
+    cond = a.normalize_context({"q_start": torch.rand(64, 2, generator=g), "q_goal": torch.rand(64, 2, generator=g)})
+    with torch.no_grad():
+        e32, e16 = a.network(x, 10, cond), b.network(x, 10, cond)
+    rel = float((e32 - e16).norm() / e32.norm())
+    assert 0 < rel < 0.02
+    auto = shipped.ship(trained, tmp_path / "pa")
+    assert json.loads(auto.with_name(auto.name.replace(".pt", ".lock.json")).read_text())["weights_dtype"] == "float32"
+    with pytest.raises(ValueError, match="bfloat16"):
+        shipped.ship(trained, tmp_path / "px", max_bytes=1000)
+
+
 def test_a_corrupted_shipped_prior_is_detected_and_retrained(tmp_path, monkeypatch, capfd):
     from mpd.models import shipped
 

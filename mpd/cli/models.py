@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -99,12 +100,24 @@ def models_list(task_name):
 @models.command("ship")
 @click.argument("model_path", type=click.Path(exists=True))
 @click.option("--root", default=None, help="folder of shipped priors (default: the package's mpd/priors)")
-def models_ship(model_path, root):
+@click.option(
+    "--dtype",
+    "weights_dtype",
+    type=click.Choice(["auto", "float32", "bfloat16"]),
+    default="auto",
+    show_default=True,
+    help="weights as stored (auto: float32 if within the 10 MB limit, else bfloat16)",
+)
+def models_ship(model_path, root, weights_dtype):
     """Write a trained model (a cache model.pt or its folder) as a shipped prior with its lock file."""
     from mpd.models import shipped
 
-    path = shipped.ship(model_path, root or shipped.BUNDLED)
-    click.echo(f"shipped: {path} ({path.stat().st_size / 2**20:.2f} MB)")
+    try:
+        path = shipped.ship(model_path, root or shipped.BUNDLED, weights_dtype=weights_dtype)
+    except ValueError as e:
+        raise click.ClickException(str(e)) from None
+    lock = json.loads(path.with_name(path.name[: -len(".pt")] + ".lock.json").read_text())
+    click.echo(f"shipped: {path} ({path.stat().st_size / 2**20:.2f} MB, {lock['weights_dtype']} weights)")
 
 
 @models.command("shipped")

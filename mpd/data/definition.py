@@ -102,6 +102,8 @@ class _PlannerFields(PlannerSettings):
             raise ValueError("check_step must be positive")
         if self.range < 0:
             raise ValueError("range must be >= 0 (0 = OMPL default)")
+        if self.resample not in ("arc_length", "v1"):
+            raise ValueError(f"resample must be arc_length or v1, got {self.resample!r}")
 
 
 @dataclass(frozen=True)
@@ -178,6 +180,9 @@ def identity_of(defn: DatasetDefinition, task: Task) -> str:
     """Hash of the filled definition (name and description aside), the data-relevant sections of the task file
     (``DATA_SECTIONS``), the robot file and GENERATOR_VERSION."""
     content = {k: v for k, v in to_dict(defn).items() if k not in ("name", "description")}
+    if content["planner"].get("resample") == "v1":
+        # the definitions generated before planner.resample existed keep their identities (and their data)
+        del content["planner"]["resample"]
     return stable_hash(content, task_data_hash(task), file_sha256(robot_file(task)), GENERATOR_VERSION)
 
 
@@ -198,6 +203,7 @@ def resolve(raw: DatasetDefinition, path: Path | None = None) -> ResolvedDefinit
         range=p.range,
         check_step=default_check_step(task) if p.check_step is None else p.check_step,
         simplify=p.simplify,
+        resample=p.resample,
     )
     clearance = task.spec.collision.clearance if raw.checker.clearance is None else raw.checker.clearance
     fields = {f.name: getattr(raw, f.name) for f in dataclasses.fields(DatasetDefinition)}

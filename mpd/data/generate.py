@@ -142,8 +142,11 @@ def compute_chunk(rd: ResolvedDefinition, i: int, progress=None) -> tuple[dict[s
         # the authors discard fits with a control point outside twice the joint range (centred on the range)
         in_range = ((w >= lo - (hi - lo) / 2) & (w <= hi + (hi - lo) / 2)).all(axis=(1, 2))
         out["fit_in_range"][ok] = in_range
-        dense = torch.as_tensor(param.basis @ w.astype(np.float64))
-        out["fit_free"][ok] = truth.trajectories(dense).collision_free.numpy()
+        # (a path that could not be fitted has NaN control points: out of range above, and not collision free)
+        fitted = np.flatnonzero(ok)[np.isfinite(w).all(axis=(1, 2))]
+        if len(fitted):
+            dense = torch.as_tensor(param.basis @ out["control_points"][fitted].astype(np.float64))
+            out["fit_free"][fitted] = truth.trajectories(dense).collision_free.numpy()
     if task.ee_goal:
         has = ~np.isnan(out["q_goal"][:, 0])
         out["ee_pos"] = np.full((n, 3), np.nan)
@@ -214,15 +217,17 @@ def chunk_states(rd: ResolvedDefinition, use_lock: bool = True) -> dict[int, str
 
 
 def default_dataset(task_name: str) -> str:
-    """``<task>-paper`` when that dataset is complete in this cache, else ``<task>-small`` (a committed lock file
-    alone does not count: a fresh clone would otherwise generate the paper-size dataset first)."""
+    """``<task>-paper`` when that dataset is complete in this cache, else ``<task>-cpu`` (the Panda tasks' size for
+    CPU-trained priors) when complete, else ``<task>-small``. A committed lock file alone does not count: a fresh
+    clone would otherwise generate a large dataset first."""
     from mpd.data.definition import DATASETS_DIR
 
-    paper = f"{task_name}-paper"
-    if (DATASETS_DIR / f"{paper}.toml").exists():
-        rd = load_definition(paper)
-        if rd.data_dir.exists() and not chunk_states(rd):
-            return paper
+    for size in ("paper", "cpu"):
+        name = f"{task_name}-{size}"
+        if (DATASETS_DIR / f"{name}.toml").exists():
+            rd = load_definition(name)
+            if rd.data_dir.exists() and not chunk_states(rd):
+                return name
     return f"{task_name}-small"
 
 

@@ -42,6 +42,10 @@ class PlannerSettings:
     range: float = 0.0  # RRTConnect step; 0 = OMPL's default (0.2 x the space's maximum extent)
     check_step: float = 0.01  # joint-space distance between checked states along an edge
     simplify: Literal["max", "none"] = "max"
+    # how the n_points states are shared among the simplified path's edges (see resample_path): "arc_length", in
+    # proportion to each edge's length like OMPL's interpolate(n); "v1", the allocation of mpd until 2026-12-02
+    # (a bug: about equally many states per edge, capped by its grid), kept for the definitions generated with it
+    resample: Literal["arc_length", "v1"] = "arc_length"
 
     def validate(self) -> None:
         if self.time_limit <= 0:
@@ -50,6 +54,8 @@ class PlannerSettings:
             raise ValueError("check_step must be positive")
         if self.range < 0:
             raise ValueError("range must be >= 0 (0 = OMPL default)")
+        if self.resample not in ("arc_length", "v1"):
+            raise ValueError(f"resample must be arc_length or v1, got {self.resample!r}")
 
 
 @dataclass
@@ -77,7 +83,32 @@ def problem_seed(*parts: int | str) -> int:
 
 
 def _allocate(total: int, weights: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Integers lo <= k <= hi summing to total, close to total * weights / sum (largest remainder, stable)."""
+    """Integers lo <= k <= hi summing to total (sum(lo) <= total <= sum(hi)): lo plus the rest shared in proportion
+    to the weights by largest remainder (ties to the lower index); an entry whose share would pass its cap is set
+    to the cap and the rest is shared again among the others."""
+    k = lo.astype(np.int64).copy()
+    weights = np.asarray(weights, dtype=np.float64)
+    while True:
+        rest = total - int(k.sum())
+        free = k < hi
+        if rest <= 0 or not free.any():
+            return k
+        share = rest * np.where(free, weights, 0.0) / weights[free].sum()
+        add = np.floor(share).astype(np.int64)
+        extra = rest - int(add.sum())
+        order = np.argsort(-np.where(free, share - add, -np.inf), kind="stable")[:extra]
+        add[order] += 1
+        over = k + add > hi
+        if not over.any():
+            return k + add
+        k[over] = hi[over]
+
+
+def _allocate_v1(total: int, weights: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The allocation of mpd until 2026-12-02, kept so that the datasets generated with it regenerate byte for byte
+    (their definitions say ``resample = "v1"``). Meant to be proportional, it adds one to every free entry per
+    round, so the states end up about equal per edge (capped by the edge's grid): short edges get many, long ones
+    few."""
     k = lo.astype(np.int64).copy()
     while k.sum() < total:
         free = k < hi
@@ -89,7 +120,7 @@ def _allocate(total: int, weights: np.ndarray, lo: np.ndarray, hi: np.ndarray) -
     return k
 
 
-def resample_path(vertices: np.ndarray, n: int, step: float) -> np.ndarray:
+def resample_path(vertices: np.ndarray, n: int, step: float, allocation: str = "arc_length") -> np.ndarray:
     """Exactly n states along a polyline, placed on the grid its edges were checked at.
 
     Each edge a -> b was checked at ``edge_states(a, b, step)``: the points a + (k / m)(b - a), k = 0..m,
@@ -97,8 +128,10 @@ def resample_path(vertices: np.ndarray, n: int, step: float) -> np.ndarray:
     among these grid points (the vertices included), so that checking the result again at ``step`` visits only
     checked points. Otherwise every grid point is kept and the missing states are spread over the grid
     intervals (those are checked afresh by the caller). With more than n vertices: n states equally spaced in
-    arc length.
+    arc length. ``allocation``: "arc_length" shares the states among the edges in proportion to their grid counts
+    (their lengths); "v1" with :func:`_allocate_v1` (see ``PlannerSettings.resample``).
     """
+    allocate = _allocate_v1 if allocation == "v1" else _allocate
     v = np.asarray(vertices, dtype=np.float64)
     if len(v) > 1:
         keep = np.concatenate([[True], np.linalg.norm(np.diff(v, axis=0), axis=1) > 0])
@@ -113,12 +146,12 @@ def resample_path(vertices: np.ndarray, n: int, step: float) -> np.ndarray:
     grid = np.array([grid_count(x, step) for x in seg])
     out = [v[:1]]
     if grid.sum() >= n - 1:
-        m = _allocate(n - 1, grid.astype(np.float64), np.ones_like(grid), grid)
+        m = allocate(n - 1, grid.astype(np.float64), np.ones_like(grid), grid)
         for i, (g, k) in enumerate(zip(grid, m)):
             idx = np.round(np.arange(1, k + 1) * g / k).astype(np.int64)  # strictly increasing since k <= g
             out.append(v[i] + (idx[:, None] / g) * (v[i + 1] - v[i]))
     else:
-        sub = _allocate(
+        sub = allocate(
             n - 1,
             np.repeat(seg / grid, grid),
             np.ones(grid.sum(), np.int64),
@@ -240,7 +273,7 @@ class JointSpacePlanner:
             del path
         finally:
             del ss, si, mv, space
-        dense = resample_path(vertices, self.n_points, self.settings.check_step)
+        dense = resample_path(vertices, self.n_points, self.settings.check_step, self.settings.resample)
         dense[0], dense[-1] = q_start, q_goal  # exact ends (OMPL copies them, this keeps them bit-identical)
         if self.store_dtype is not None:
             dense = dense.astype(self.store_dtype).astype(np.float64)

@@ -16,12 +16,13 @@ from mpd.models.data import training_arrays
 from mpd.schema import file_sha256
 from mpd.tasks import Task, load_task
 
-# rough rates on a 2-core CPU, only for the dry run's estimate
+# rough rates (planned contexts per second per core), only for the dry run's estimate; the Panda's from the
+# Warehouse benchmark with the compiled checker (16 /s; Spheres3D runs at ~45 /s)
 _PATHS_PER_S = {
     "RobotPointMass2D": 60.0,
     "RobotPlanar2Link": 20.0,
     "RobotPlanar4Link": 8.0,
-    "RobotPanda": 2.0,
+    "RobotPanda": 15.0,
 }
 # training steps/s by U-Net depth, one thread per model on a 2-core CPU at the cpu profiles' batch sizes: measured
 # 8.4-10.8/s for the (1, 2, 4) nets at batch 128 (two bf16 models side by side, reports/recipe-study-2d; fp32 is within

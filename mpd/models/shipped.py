@@ -13,9 +13,12 @@ Layout, one folder per task::
 
 The file is a checkpoint of the cache format with the EMA weights only (what sampling uses: ``weights`` refers to
 the same tensors, which ``torch.save`` stores once), float32, so that a shipped prior samples exactly what the
-trained one does. The lock holds the file's sha256 and size, and what made it: task and dataset hashes, training
-settings, seed, steps, training wall time, CPU, device and code commit. ``MPD_PRIORS`` (folders separated by
-``os.pathsep``) is searched before the bundled folder; ``MPD_PRIORS=none`` turns shipped priors off.
+trained one does; or, where float32 would exceed the size limit (the Panda-sized networks, ~18 MB), rounded to
+bfloat16 (``weights_dtype``, recorded in the lock; loading casts them back to float32, so only the weights'
+rounding differs from the trained model: ``tests/test_models.py`` bounds its effect on a denoising step, and the
+closing notes compare the samples). The lock holds the file's sha256 and size, and what made it: task and dataset
+hashes, training settings, seed, steps, training wall time, CPU, device and code commit. ``MPD_PRIORS`` (folders
+separated by ``os.pathsep``) is searched before the bundled folder; ``MPD_PRIORS=none`` turns shipped priors off.
 """
 
 from __future__ import annotations
@@ -122,9 +125,17 @@ def install(task_name: str, kind: str, parametrization: str, identity: str, dest
     return dest_dir / MODEL_FILE
 
 
-def ship(model_path: str | Path, root: str | Path = BUNDLED, max_bytes: int = MAX_BYTES) -> Path:
+WEIGHTS_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+def ship(
+    model_path: str | Path, root: str | Path = BUNDLED, max_bytes: int = MAX_BYTES, weights_dtype: str = "auto"
+) -> Path:
     """Write the shipped form of a trained cache model (its ``model.pt``) and its lock under ``root/<task>/``;
-    returns the shipped file. Raises ValueError when the file would exceed ``max_bytes``."""
+    returns the shipped file. ``weights_dtype``: float32, bfloat16, or auto (float32 when it fits in ``max_bytes``,
+    else bfloat16). Raises ValueError when the file would exceed ``max_bytes``."""
+    if weights_dtype not in ("auto", *WEIGHTS_DTYPES):
+        raise ValueError(f"weights_dtype {weights_dtype!r}: expected auto, {', '.join(WEIGHTS_DTYPES)}")
     model_path = Path(model_path)
     if model_path.is_dir():
         model_path = model_path / MODEL_FILE
@@ -132,19 +143,25 @@ def ship(model_path: str | Path, root: str | Path = BUNDLED, max_bytes: int = MA
     ckpt.pop("_path", None)
     meta_path = model_path.parent / META_FILE
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    ema = ckpt["ema_weights"]
-    ckpt["weights"] = ema  # the same tensors: stored once
+    ema32 = ckpt["ema_weights"]
     ckpt["weights_are_ema"] = True
     out_dir = Path(root) / ckpt["task_name"]
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / (stem(ckpt["kind"], ckpt["parametrization"], ckpt["identity"]) + ".pt")
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    torch.save(ckpt, tmp)
-    size = tmp.stat().st_size
-    if size > max_bytes:
+    for dtype in ("float32", "bfloat16") if weights_dtype == "auto" else (weights_dtype,):
+        want = WEIGHTS_DTYPES[dtype]
+        ema = {k: v.to(want) if v.is_floating_point() else v for k, v in ema32.items()}
+        ckpt["ema_weights"] = ckpt["weights"] = ema  # the same tensors: stored once
+        ckpt["weights_dtype"] = dtype
+        torch.save(ckpt, tmp)
+        size = tmp.stat().st_size
+        if size <= max_bytes:
+            break
+    else:
         tmp.unlink()
         raise ValueError(
-            f"{model_path}: the shipped file would be {size / 2**20:.1f} MB (limit {max_bytes / 2**20:.0f})"
+            f"{model_path}: the shipped file would be {size / 2**20:.1f} MB in {dtype} (limit {max_bytes / 2**20:.0f})"
         )
     os.replace(tmp, path)
     prov = ckpt.get("provenance") or {}
@@ -164,6 +181,7 @@ def ship(model_path: str | Path, root: str | Path = BUNDLED, max_bytes: int = MA
         "training_spec": ckpt["training_spec"],
         "seed": ckpt["seed"],
         "steps": int(ckpt["step"]),
+        "weights_dtype": ckpt["weights_dtype"],
         "wall_time_s": float(ckpt.get("wall_time_s", 0.0)),
         "resumed_from_trunk_step": ckpt.get("resumed_from_trunk_step"),
         "cpu": meta.get("cpu") or cpu_model(),

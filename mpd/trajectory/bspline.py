@@ -108,22 +108,38 @@ class BSplineTrajectory(LinearTrajectory):
         return w[..., 3 : n - 2, :] if self.ee_goal else w[..., 3 : n - 3, :]
 
     def fit(self, paths: np.ndarray) -> np.ndarray:
-        """Least-squares B-spline through each dense path (scipy ``splprep`` with this knot vector, the paper's
-        choice), then the boundary rows are set to the path's end points. (N, n, dof) -> (N, n_control, dof)."""
+        """Least-squares B-spline through each dense path (scipy ``splprep`` with this knot vector and the chord-length
+        parameter, the paper's choice), then the boundary rows are set to the path's end points.
+        (N, n, dof) -> (N, n_control, dof).
+
+        When the chord-length parameter leaves a knot interval without data (a path whose simplification kept many
+        short edges crowds its states into part of its length, and FITPACK then fails: the least-squares problem is
+        singular), the path is fitted with its states equally spaced in the parameter instead; a path that fails both
+        gets NaN control points (judged out of range, so not used for training)."""
         paths = np.asarray(paths, dtype=np.float64)
         out = np.empty((paths.shape[0], self.n_params, paths.shape[2]))
-        inner = self.knots[self.degree + 1 : -self.degree - 1]
         for i, path in enumerate(paths):
-            u = _chord_parameter(path)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # splprep warns on nearly straight 2-D paths; the fit is still fine
-                (t, c, _k), _u = interpolate.splprep(list(path.T), u=u, k=self.degree, t=self.knots, task=-1, s=0)
-            assert np.allclose(t[self.degree + 1 : -self.degree - 1], inner)
-            w = np.stack(c, 1)[: self.n_params]
+            w = self._fit_one(path, _chord_parameter(path))
+            if w is None:
+                w = self._fit_one(path, np.linspace(0.0, 1.0, len(path)))
+            if w is None:
+                out[i] = np.nan
+                continue
             w[:3] = path[0]
             w[-3:] = path[-1]
             out[i] = w
         return out
+
+    def _fit_one(self, path: np.ndarray, u: np.ndarray) -> np.ndarray | None:
+        inner = self.knots[self.degree + 1 : -self.degree - 1]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # splprep warns on nearly straight 2-D paths; the fit is still fine
+            try:
+                (t, c, _k), _u = interpolate.splprep(list(path.T), u=u, k=self.degree, t=self.knots, task=-1, s=0)
+            except (TypeError, ValueError):  # FITPACK's error codes (scipy raises TypeError for some of them)
+                return None
+        assert np.allclose(t[self.degree + 1 : -self.degree - 1], inner)
+        return np.stack(c, 1)[: self.n_params]
 
 
 def _chord_parameter(path: np.ndarray) -> np.ndarray:
