@@ -19,8 +19,11 @@ pre-multiplied by alpha. With guidance off this planner is exactly Dprior (same 
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
+from mpd.device import network_autocast, network_precision
 from mpd.models.diffusion import ddim_sigma, ddim_step, ddim_timesteps, ddpm_mean, randn
 from mpd.planners.base import Context, HistoryStep, Planner, Timer, model_context, register
 from mpd.planners.optimize import clip_grad, optimize, project
@@ -40,6 +43,8 @@ class MPD(Planner):
         cond = self.model.normalize_context(model_context(ctx))
         shape = (n, self.param.n_free, self.task.dof)
         dev = self.device
+        precision = network_precision(s.network_precision, dev)
+        autocast = functools.partial(network_autocast, precision, dev)
         grad_fn = self.cost_grad_fn(ctx, timer) if self.guided else None
         x = randn(shape, gen, dev)
         if hist is not None:
@@ -52,8 +57,8 @@ class MPD(Planner):
             pairs = ddim_timesteps(s.ddim_steps, s.ddim_schedule, net.n_diffusion_steps, s.ddim_variant, generator=gen)
             n_guided = s.guided_steps(len(pairs)) if self.guided else 0
             for i, (t, tn) in enumerate(pairs):
-                with timer("network"):
-                    eps = net(x, t, cond)
+                with timer("network"), autocast():
+                    eps = net(x, t, cond).float()
                 sigma = ddim_sigma(t, tn, s.eta) if tn >= 0 else 0.0
                 if i < len(pairs) - n_guided:
                     x = ddim_step(x, eps, t, tn, s.eta, noise_if(sigma, tn))
@@ -77,8 +82,8 @@ class MPD(Planner):
             steps = net.n_diffusion_steps
             n_guided = s.guided_steps(steps) if self.guided else 0
             for i, t in enumerate(range(steps - 1, -1, -1)):
-                with timer("network"):
-                    eps = net(x, t, cond)
+                with timer("network"), autocast():
+                    eps = net(x, t, cond).float()
                 guided = t < n_guided
                 mean = ddpm_mean(x, s.ddpm_prior_weight * eps if guided else eps, t, schedule=sch)
                 if guided:
@@ -99,7 +104,8 @@ class MPD(Planner):
             x = self.after_sampling(x, ctx, timer, hist)
             free = self.normalizer.unnormalize(x)
         timer.times["sampling"] = timer.times["total"] - timer.times.get("cost_gradient", 0.0)
-        return self.finish(free, ctx, timer, hist)
+        precision = network_precision(self.settings.network_precision, self.device)
+        return self.finish(free, ctx, timer, hist, network_precision=precision)
 
     def after_sampling(self, x: torch.Tensor, ctx: Context, timer: Timer, hist: list | None) -> torch.Tensor:
         return x

@@ -37,6 +37,9 @@ class PlannerSettings:
     # -- diffusion sampling ----------------------------------------------------------------------------------
     sampler: Literal["ddim", "ddpm"] = "ddim"
     ddim_steps: int = 15
+    # the denoising network's forward passes: fp32, bf16 autocast, or auto (bf16 where the device computes it
+    # natively: AVX512_BF16 / AMX CPUs, CUDA; fp32 elsewhere). Recorded per results row (info_network_precision).
+    network_precision: Literal["fp32", "bf16", "auto"] = "fp32"
     ddim_schedule: Literal["quadratic", "uniform"] = "quadratic"
     ddim_variant: Literal["official", "paper"] = "official"
     eta: float = 0.5
