@@ -392,3 +392,54 @@ def test_se3_log_and_gradient():
     grad = se3_half_sq_log_grad(parts)
     assert _rel(grad, auto) < 1e-9
     assert _rel(xi, auto) > 1e-2  # -J^T xi is not the gradient for finite errors
+
+
+@pytest.mark.parametrize("key", list(CASES))
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_compiled_collision_pass_is_the_torch_path(key, dtype):
+    """The compiled CPU pass of the collision cost (``mpd.costs.collision_kernel``) against the torch lines it
+    replaces: the same nearest nodes (so equal distances and gradients), the same active entries, the same cost,
+    for sphere centres inside the grid box, exactly half-way between nodes (rounding ties), on and beyond the box's
+    faces (clamped, the distance to the box added), with the extra objects where the task has them."""
+    from mpd.costs import collision_kernel
+    from mpd.costs.collision import CollisionCost
+
+    task, param, env, free, q_start, q_goal, ee_goal = case(key, "bspline")
+    dense = param.dense(free.to(dtype), q_start.to(dtype), None if q_goal is None else q_goal.to(dtype))
+    inp = CostInput(dense, task, env, ee_goal, "nearest")
+    X = inp.kinematics().points_t.clone()
+    S, _, N = X.shape
+    D = task.dim
+    grid = env.grid("fixed")
+    lo, hi = (torch.as_tensor(v, dtype=dtype) for v in (grid.lo, grid.hi))
+    g = torch.Generator().manual_seed(5)
+    cols = torch.randperm(N, generator=g)[: N // 2]
+    # half of the columns: ties (node + cell / 2), points on the faces and up to 0.3 m beyond them
+    k = torch.randint(0, min(grid.shape) - 1, (S, D, len(cols)), generator=g)
+    ties = lo.view(1, D, 1) + (k.to(dtype) + 0.5) * grid.cell
+    X[:, :D, cols[: len(cols) // 2]] = ties[..., : len(cols) // 2]
+    u = torch.rand(S, D, len(cols) - len(cols) // 2, generator=g, dtype=dtype)
+    X[:, :D, cols[len(cols) // 2 :]] = lo.view(1, D, 1) - 0.3 + (hi - lo + 0.6).view(1, D, 1) * u
+    X[:, :D, cols[len(cols) // 2 :: 7]] = hi.view(1, D, 1).to(dtype)  # exactly on the upper faces
+    radius = (task.robot.sphere_radii + 0.05).to(X)[:, None]
+    w = torch.rand(dense.q.shape[1], generator=g, dtype=dtype)
+    value, G, flat = collision_kernel.collision_pass(env, X, radius, w, 3.0, reach=None)
+    # the torch path (CollisionCost's reference lines)
+    d, gd = sdf_batch_last(env, X[:, :D], "nearest")
+    a = radius - d
+    relu = a.clamp_min(0)
+    wN = w.repeat(N // len(w))
+    assert torch.equal(flat, (relu > 0).reshape(-1).nonzero().squeeze(1))
+    torch.testing.assert_close(value, (relu * wN).sum(0), rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=0)
+    ref_G = torch.zeros_like(G)
+    ref_G[:, :D] = (relu > 0)[:, None] * (-3.0 * wN) * gd
+    torch.testing.assert_close(G, ref_G, rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=0)
+    # and the whole cost through both paths (the kernel skips the clamping when the reach ball lies in the box)
+    terms = {}
+    for compiled in (True, False):
+        c = CollisionCost(task, "official")
+        c.compiled = compiled
+        terms[compiled] = c(CostInput(dense, task, env, ee_goal, "nearest"), 2.0)
+    torch.testing.assert_close(terms[True].value, terms[False].value, rtol=1e-6, atol=0)
+    scale = terms[False].g_q.abs().max().item()
+    torch.testing.assert_close(terms[True].g_q, terms[False].g_q, rtol=1e-5, atol=1e-6 * scale)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import torch
 
+from mpd.costs import collision_kernel
 from mpd.costs.base import Cost, CostInput, CostTerm, register, spheres_vjp_sparse
 from mpd.costs.sdf import sdf_batch_last
 from mpd.tasks import Task
@@ -25,6 +26,8 @@ SPARSE_FRACTION = 0.05
 @register
 class CollisionCost(Cost):
     name = "collision"
+    # the compiled CPU pass for the nearest-node grid (False: the torch path, its reference, everywhere)
+    compiled: bool = True
 
     def __init__(self, task: Task, preset: str = "official"):
         super().__init__(task, preset)
@@ -39,9 +42,21 @@ class CollisionCost(Cost):
         key = ("r", X.dtype, str(X.device))
         if key not in self._consts:
             self._consts[key] = {"r": (self.robot.sphere_radii + self.margin).to(X)[:, None]}
+        w = self.weights(inp)
+        if self.compiled and inp.sdf_mode == "nearest" and collision_kernel.supported(X):
+            # one compiled pass (the torch lines below are its reference)
+            per_config, G, flat = collision_kernel.collision_pass(
+                inp.env, X, self._consts[key]["r"], w, weight, self.robot.chain.reach
+            )
+            value = per_config.view(B, n).sum(-1)
+            if flat.numel() > SPARSE_FRACTION * S * N:
+                g_q = self.robot.chain.points_vjp_frames(kin, G)
+            else:
+                g_act = G[flat // N, :D, flat % N]
+                g_q = spheres_vjp_sparse(self.robot, kin, flat, g_act, N)
+            return CostTerm(value, g_q=g_q.view(B, n, dof))
         d, g = sdf_batch_last(inp.env, X[:, :D], inp.sdf_mode, self.robot.chain.reach)
         a = self._consts[key]["r"] - d  # (S, N): depth inside the margin-inflated obstacles
-        w = self.weights(inp)
         relu = a.clamp_min(0)
         value = (relu.sum(0).view(B, n) * w).sum(-1)
         n_active = int(torch.count_nonzero(relu))
