@@ -331,6 +331,50 @@ def test_self_collision_culling_is_exact():
         assert (pen_cand[~hit] <= 0).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("preset", ["official", "paper"])
+def test_compiled_self_collision_is_the_torch_path(dtype, preset):
+    """The compiled self-collision pass (``mpd.costs.self_collision_kernel``) against the torch path: the same
+    penetration per configuration, the same deepest pairs, so the same cost and gradient; and against the
+    maximum over all pairs without any culling (``Robot.self_collision_distance``)."""
+    from mpd.costs import self_collision_kernel
+    from mpd.costs.self_collision import SelfCollisionCost
+
+    for name in ("EnvSpheres3D-RobotPanda", "EnvPlanar4Link-RobotPlanar4Link"):
+        task = load_task(name)
+        r = task.robot
+        param = make_parametrization(task, "bspline")
+        cost = SelfCollisionCost(task, preset)
+        args = self_collision_kernel.kernel_args(
+            cost._levels, cost.blocks, cost._used, r.sphere_radii.numpy(), cost.margin, dtype
+        )
+        # random configurations: 1-2 % in self collision
+        kin = r.kinematics(r.random_q(20000, torch.Generator().manual_seed(12), dtype=dtype))
+        pen, config, i, j = self_collision_kernel.self_pass(kin.points_t, args)
+        pen_all = (cost.margin - r.self_collision_distance(kin.points)).max(-1)
+        hit = pen_all.values > 0
+        assert hit.sum() > 100, "the configurations test nothing"
+        assert torch.equal(config, hit.nonzero().squeeze(1))
+        tol = 1e-6 if dtype == torch.float32 else 1e-12
+        torch.testing.assert_close(pen[hit], pen_all.values[hit], rtol=0, atol=tol)
+        assert (pen[~hit] == 0).all()
+        d_ij = (kin.points_t[i, :, config] - kin.points_t[j, :, config]).norm(dim=-1)
+        rad = r.sphere_radii.to(dtype)
+        torch.testing.assert_close(rad[i] + rad[j] + cost.margin - d_ij, pen[config], rtol=0, atol=tol)
+        # the cost through both paths, on trajectories through random configurations
+        q = r.random_q(20 * param.n_free + 40, torch.Generator().manual_seed(13), dtype=dtype)
+        free = q[: 20 * param.n_free].view(20, param.n_free, -1)
+        dense = param.dense(free, q[-40:-20], None if task.ee_goal else q[-20:])
+        terms = {}
+        for compiled in (True, False):
+            c = SelfCollisionCost(task, preset)
+            c.compiled = compiled
+            terms[compiled] = c(CostInput(dense, task, task.env(), None, "nearest"), 2.0)
+        assert (terms[False].value > 0).any()
+        torch.testing.assert_close(terms[True].value, terms[False].value, rtol=tol, atol=0)
+        torch.testing.assert_close(terms[True].g_q, terms[False].g_q, rtol=tol, atol=tol)
+
+
 # ----------------------------------------------------------------------------------------------- EE pose
 def test_ee_cost_zero_at_goal():
     g = torch.Generator().manual_seed(3)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from mpd.costs import self_collision_kernel
 from mpd.costs.base import Cost, CostInput, CostTerm, register, spheres_vjp_sparse
 from mpd.tasks import Task
 
@@ -55,6 +56,8 @@ def _clusters(members: np.ndarray, x0: np.ndarray, size: int) -> list[np.ndarray
 @register
 class SelfCollisionCost(Cost):
     name = "self_collision"
+    # the compiled CPU pass (False: the torch path, its reference, everywhere)
+    compiled: bool = True
 
     def __init__(self, task: Task, preset: str = "official"):
         super().__init__(task, preset)
@@ -156,28 +159,44 @@ class SelfCollisionCost(Cost):
                 best_i, best_j = torch.where(better, i, best_i), torch.where(better, j, best_j)
         return best, best_i, best_j
 
+    def _gradient(self, kin, u, config, i, j, ww, n: int) -> torch.Tensor:
+        """dC/dq (N, dof) from the deepest pairs (i, j) (sphere indices) of the active configurations, u = c_i - c_j
+        (m, 3): d pen / d c_j = weight w u / |u|, minus that on c_i."""
+        N = kin.points_t.shape[2]
+        coef = ww.index_select(0, config % n)[:, None] / u.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        g = coef * u
+        flat = torch.cat([i * N + config, j * N + config])
+        return spheres_vjp_sparse(self.robot, kin, flat, torch.cat([-g, g]), N)
+
     def __call__(self, inp: CostInput, weight: float = 1.0) -> CostTerm:
         B, n, dof = inp.shape
         kin = inp.kinematics()
         X = kin.points_t  # (S, 3, N)
         N = X.shape[2]
         w = self.weights(inp)
-        per_point = X.new_zeros(N)
         g_q = X.new_zeros(N, dof)
-        cand = self.candidates(X)
-        if cand.numel():
-            used = self._c(X)["used"]
-            Xu = X.index_select(2, cand).index_select(0, used)  # (U, 3, M): columns first, they are few
-            pen, i, j = self.deepest_pair(Xu)
-            per_point.index_copy_(0, cand, pen.clamp_min(0))
-            sel = (pen > 0).nonzero().squeeze(1)
-            if sel.numel():
-                i, j = i.index_select(0, sel), j.index_select(0, sel)
-                u = Xu[i, :, sel] - Xu[j, :, sel]  # (m, 3)
-                config = cand.index_select(0, sel)
-                coef = (weight * w).index_select(0, config % n)[:, None] / u.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-                g = coef * u  # d pen / d c_j; minus that on c_i
-                flat = torch.cat([used[i] * N + config, used[j] * N + config])
-                g_q = spheres_vjp_sparse(self.robot, kin, flat, torch.cat([-g, g]), N)
+        if self.compiled and self_collision_kernel.supported(X):
+            key = ("kernel", X.dtype)
+            if key not in self._consts:
+                r = self.robot
+                self._consts[key] = self_collision_kernel.kernel_args(
+                    self._levels, self.blocks, self._used, r.sphere_radii.numpy(), self.margin, X.dtype
+                )
+            per_point, config, i, j = self_collision_kernel.self_pass(X, self._consts[key])
+            if config.numel():
+                g_q = self._gradient(kin, X[i, :, config] - X[j, :, config], config, i, j, weight * w, n)
+        else:
+            per_point = X.new_zeros(N)
+            cand = self.candidates(X)
+            if cand.numel():
+                used = self._c(X)["used"]
+                Xu = X.index_select(2, cand).index_select(0, used)  # (U, 3, M): columns first, they are few
+                pen, i, j = self.deepest_pair(Xu)
+                per_point.index_copy_(0, cand, pen.clamp_min(0))
+                sel = (pen > 0).nonzero().squeeze(1)
+                if sel.numel():
+                    i, j = i.index_select(0, sel), j.index_select(0, sel)
+                    u = Xu[i, :, sel] - Xu[j, :, sel]  # (m, 3)
+                    g_q = self._gradient(kin, u, cand.index_select(0, sel), used[i], used[j], weight * w, n)
         value = (per_point.view(B, n) * w).sum(-1)
         return CostTerm(value, g_q=g_q.view(B, n, dof))

@@ -1,0 +1,95 @@
+"""Compiled fast path of the self-collision cost on the CPU: culling and the deepest pair, per configuration.
+
+:class:`mpd.costs.self_collision.SelfCollisionCost` culls in torch with bounding spheres of whole frames, then of
+clusters, then takes the maximum over all sphere pairs of the configurations that remain, as passes over index
+gathers (~5 ms for 100 Panda trajectories x 128 points on one core, for the few configurations that need the
+exact pass). This kernel (numba, ``cache=True``) does the same tests configuration by configuration and stops at
+the first level that rules a configuration out: the same bounding spheres, the same pairs, the same penetration
+``r_i + r_j + eps - d_ij`` and its deepest pair (the first of equal ones in the torch path's order). The gradient
+of the few active configurations stays the torch one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _near(X, c, a, b, r2) -> bool:
+    """Some pair (a[k], b[k]) of centres of configuration c closer than sqrt(r2[k])."""
+    for k in range(a.shape[0]):
+        d0 = X[a[k], 0, c] - X[b[k], 0, c]
+        d1 = X[a[k], 1, c] - X[b[k], 1, c]
+        d2 = X[a[k], 2, c] - X[b[k], 2, c]
+        if d0 * d0 + d1 * d1 + d2 * d2 < r2[k]:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def _self_pass(X, a1, b1, r1, a2, b2, r2, pi, pj, rr, pen_out, cfg, best_i, best_j):
+    """For every configuration c of X (S, 3, N): if some frame pair (a1, b1, squared reach r1) and then some
+    cluster pair (a2, b2, r2) may touch, the maximum over the pairs (pi, pj) of rr - d, written to ``pen_out[c]``
+    where positive (else it stays 0); the configurations with a positive one, and their deepest pair, go to
+    ``cfg``, ``best_i``, ``best_j``; returns their number."""
+    N = X.shape[2]
+    m = 0
+    for c in range(N):
+        if not _near(X, c, a1, b1, r1):
+            continue
+        if not _near(X, c, a2, b2, r2):
+            continue
+        best = -np.inf
+        bi = -1
+        bj = -1
+        for k in range(pi.shape[0]):
+            i = pi[k]
+            j = pj[k]
+            d0 = X[i, 0, c] - X[j, 0, c]
+            d1 = X[i, 1, c] - X[j, 1, c]
+            d2 = X[i, 2, c] - X[j, 2, c]
+            p = rr[k] - np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if p > best:
+                best = p
+                bi = i
+                bj = j
+        if best > 0:
+            pen_out[c] = best
+            cfg[m] = c
+            best_i[m] = bi
+            best_j[m] = bj
+            m += 1
+    return m
+
+
+def supported(X: torch.Tensor) -> bool:
+    return X.device.type == "cpu" and X.dtype in (torch.float32, torch.float64) and not X.requires_grad
+
+
+def kernel_args(levels, blocks, used: np.ndarray, radii: np.ndarray, margin: float, dtype) -> tuple:
+    """Flat pair arrays from the cost's bounding-sphere levels and exact blocks (global sphere indices), in the
+    torch path's order (block by block, row-major within a block)."""
+    np_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+    flat = []
+    for level in levels:
+        a = np.concatenate([np.repeat(A, len(B)) for A, B, _ in level])
+        b = np.concatenate([np.tile(B, len(A)) for A, B, _ in level])
+        r = np.concatenate([R.reshape(-1) for _, _, R in level]).astype(np_dtype)
+        flat += [a.astype(np.int64), b.astype(np.int64), r]
+    pi = np.concatenate([np.repeat(used[I], len(J)) for I, J in blocks]).astype(np.int64)
+    pj = np.concatenate([np.tile(used[J], len(I)) for I, J in blocks]).astype(np.int64)
+    rr = np.concatenate([(radii[used[I]][:, None] + radii[used[J]][None, :] + margin).reshape(-1) for I, J in blocks])
+    return (*flat, pi, pj, rr.astype(np_dtype))
+
+
+def self_pass(X: torch.Tensor, args: tuple) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(per-configuration penetration (N,), active configurations (M,), their deepest pair i (M,), j (M,))."""
+    N = X.shape[2]
+    pen = torch.zeros(N, dtype=X.dtype)
+    cfg = torch.empty(N, dtype=torch.int64)
+    bi = torch.empty(N, dtype=torch.int64)
+    bj = torch.empty(N, dtype=torch.int64)
+    m = _self_pass(X.detach().contiguous().numpy(), *args, pen.numpy(), cfg.numpy(), bi.numpy(), bj.numpy())
+    return pen, cfg[:m], bi[:m], bj[:m]
