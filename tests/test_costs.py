@@ -487,3 +487,37 @@ def test_compiled_collision_pass_is_the_torch_path(key, dtype):
     torch.testing.assert_close(terms[True].value, terms[False].value, rtol=1e-6, atol=0)
     scale = terms[False].g_q.abs().max().item()
     torch.testing.assert_close(terms[True].g_q, terms[False].g_q, rtol=1e-5, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("key", ["panda_spheres", "planar4"])
+def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
+    """The compiled passes split the configurations over threads; every split gives identical results."""
+    from mpd.costs import collision_kernel, self_collision_kernel
+    from mpd.costs.self_collision import SelfCollisionCost
+
+    task, param, env, free, q_start, q_goal, ee_goal = case(key, "bspline")
+    dense = param.dense(free.float(), q_start.float(), None if q_goal is None else q_goal.float())
+    X = CostInput(dense, task, env, ee_goal, "nearest").kinematics().points_t
+    radius = (task.robot.sphere_radii + 0.05).to(X)[:, None]
+    w = torch.rand(dense.q.shape[1], generator=torch.Generator().manual_seed(1))
+    cost = SelfCollisionCost(task, "official")
+    sargs = self_collision_kernel.kernel_args(
+        cost._levels, cost.blocks, cost._used, task.robot.sphere_radii.numpy(), 0.05, X.dtype
+    )
+    n_threads = torch.get_num_threads()
+    out = {}
+    try:
+        for threads, min_cols in ((1, 2048), (3, 7), (4, 1)):
+            torch.set_num_threads(threads)
+            monkeypatch.setattr(collision_kernel, "MIN_COLUMNS_PER_THREAD", min_cols)
+            assert len(collision_kernel.column_ranges(X.shape[2])) == max(1, min(threads, X.shape[2] // min_cols))
+            out[threads] = (
+                *collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=None),
+                *self_collision_kernel.self_pass(X, sargs),
+            )
+    finally:
+        torch.set_num_threads(n_threads)
+    assert out[1][2].numel() > 0 and out[1][4].numel() > 0
+    for threads in (3, 4):
+        for a, b in zip(out[1], out[threads]):
+            assert torch.equal(a, b)

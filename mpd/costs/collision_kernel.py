@@ -15,6 +15,7 @@ on the boundary of and outside the grid boxes, with and without extra objects.
 from __future__ import annotations
 
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -24,27 +25,28 @@ from mpd.envs.grid import GridSDF
 
 
 @njit(cache=True, nogil=True)
-def _nodes(X, s, zscale, lo, hi, cell, nmax, step, clamp, idx, out):
-    """Row of the nearest node (``idx``) and the distance to the grid box (``out``) of sphere s's centres."""
-    N = X.shape[2]
-    for c in range(N):
+def _nodes(X, s, c0, c1, zscale, lo, hi, cell, nmax, step, clamp, idx, out):
+    """Row of the nearest node (``idx[c - c0]``) and the distance to the grid box (``out[c - c0]``) of sphere s's
+    centres in the columns c0 <= c < c1."""
+    for c in range(c0, c1):
         x0 = X[s, 0, c]
         x1 = X[s, 1, c]
         x2 = X[s, 2, c] * zscale
-        c0 = min(max(x0, lo[0]), hi[0]) if clamp else x0
-        c1 = min(max(x1, lo[1]), hi[1]) if clamp else x1
-        c2 = min(max(x2, lo[2]), hi[2]) if clamp else x2
-        u0 = min(np.rint((c0 - lo[0]) / cell), nmax[0])
-        u1 = min(np.rint((c1 - lo[1]) / cell), nmax[1])
-        u2 = min(np.rint((c2 - lo[2]) / cell), nmax[2])
-        idx[c] = np.int32(u0 * step[0] + u1 * step[1] + u2 * step[2])
+        p0 = min(max(x0, lo[0]), hi[0]) if clamp else x0
+        p1 = min(max(x1, lo[1]), hi[1]) if clamp else x1
+        p2 = min(max(x2, lo[2]), hi[2]) if clamp else x2
+        u0 = min(np.rint((p0 - lo[0]) / cell), nmax[0])
+        u1 = min(np.rint((p1 - lo[1]) / cell), nmax[1])
+        u2 = min(np.rint((p2 - lo[2]) / cell), nmax[2])
+        idx[c - c0] = np.int32(u0 * step[0] + u1 * step[1] + u2 * step[2])
         if clamp:
-            out[c] = np.sqrt((x0 - c0) * (x0 - c0) + (x1 - c1) * (x1 - c1) + (x2 - c2) * (x2 - c2))
+            out[c - c0] = np.sqrt((x0 - p0) * (x0 - p0) + (x1 - p1) * (x1 - p1) + (x2 - p2) * (x2 - p2))
 
 
 @njit(cache=True, nogil=True)
-def _collision_pass(X, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, value, G, flat):
-    """One pass over the (S, N) grid of sphere centres X (S, 3, N), a sphere (row of N centres) at a time.
+def _collision_pass(X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, value, G, flat, counts):
+    """One pass over the columns c0 .. c1 - 1 of the (S, N) grid of sphere centres X (S, 3, N), a sphere (row of
+    centres) at a time.
 
     ``grid_a``, ``grid_b``: (packed, lo, hi, cell, nmax, step) of the fixed and the extra objects' grids (``n_grids``
     = 1: only ``grid_a`` is read). Each lookup is ``GridSDF.query(x, "nearest")``: the point clamped into the box
@@ -52,48 +54,54 @@ def _collision_pass(X, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, value
     box added. 2-D grids are stored as 3-D ones of one layer, and ``zscale`` = 0 drops the points' z. ``r`` (S,):
     radius + margin; ``w`` (N,): quadrature weight of each configuration's trajectory point; ``coef``: -weight.
     Adds to ``value`` (N,) (sum over spheres of relu(r - d) w), writes ``coef w grad sdf`` into the active entries of
-    ``G`` (S, 3, N) (zeros given) and ``flat[:E]`` (the active entries s * N + c, in order); returns E.
+    ``G`` (S, 3, N) (zeros given) and ``flat[:E]`` (the active entries s * N + c, in order, ``counts[s]`` of them
+    for sphere s); returns E. Disjoint column ranges can run at once (threads): they write disjoint entries.
 
     Per sphere in simple loops that the compiler vectorizes: node rows, the distance gather, the depth, then the
     few active entries (one loop with a data-dependent branch per entry was 5x slower).
     """
     S = X.shape[0]
     N = X.shape[2]
+    n = c1 - c0
     pa, loa, hia, cella, nmaxa, stepa = grid_a
     pb, lob, hib, cellb, nmaxb, stepb = grid_b
-    ia = np.empty(N, np.int32)
-    ib = np.empty(N, np.int32)
-    oa = np.zeros(N, X.dtype)
-    ob = np.zeros(N, X.dtype)
-    d = np.empty(N, X.dtype)
-    use_b = np.zeros(N, np.bool_)
+    # buffers of the column range, indexed c - c0
+    ia = np.empty(n, np.int32)
+    ib = np.empty(n, np.int32)
+    oa = np.zeros(n, X.dtype)
+    ob = np.zeros(n, X.dtype)
+    d = np.empty(n, X.dtype)
+    use_b = np.zeros(n, np.bool_)
     active = 0
     for s in range(S):
         rs = r[s]
-        _nodes(X, s, zscale, loa, hia, cella, nmaxa, stepa, clamp, ia, oa)
-        for c in range(N):
-            d[c] = pa[ia[c], 0] + oa[c]
+        _nodes(X, s, c0, c1, zscale, loa, hia, cella, nmaxa, stepa, clamp, ia, oa)
+        for k in range(n):
+            d[k] = pa[ia[k], 0] + oa[k]
         if n_grids > 1:  # extra objects: only where strictly closer
-            _nodes(X, s, zscale, lob, hib, cellb, nmaxb, stepb, clamp, ib, ob)
-            for c in range(N):
-                e = pb[ib[c], 0] + ob[c]
-                use_b[c] = e < d[c]
-                d[c] = min(e, d[c])
-        for c in range(N):
-            value[c] += max(rs - d[c], 0) * w[c]
-        for c in range(N):
-            if rs - d[c] > 0:
-                k = coef * w[c]
-                if n_grids > 1 and use_b[c]:
-                    G[s, 0, c] = k * pb[ib[c], 1]
-                    G[s, 1, c] = k * pb[ib[c], 2]
-                    G[s, 2, c] = k * pb[ib[c], 3]
+            _nodes(X, s, c0, c1, zscale, lob, hib, cellb, nmaxb, stepb, clamp, ib, ob)
+            for k in range(n):
+                e = pb[ib[k], 0] + ob[k]
+                use_b[k] = e < d[k]
+                d[k] = min(e, d[k])
+        for k in range(n):
+            value[c0 + k] += max(rs - d[k], 0) * w[c0 + k]
+        before = active
+        for k in range(n):
+            if rs - d[k] > 0:
+                c = c0 + k
+                f = coef * w[c]
+                if n_grids > 1 and use_b[k]:
+                    G[s, 0, c] = f * pb[ib[k], 1]
+                    G[s, 1, c] = f * pb[ib[k], 2]
+                    G[s, 2, c] = f * pb[ib[k], 3]
                 else:
-                    G[s, 0, c] = k * pa[ia[c], 1]
-                    G[s, 1, c] = k * pa[ia[c], 2]
-                    G[s, 2, c] = k * pa[ia[c], 3]
+                    G[s, 0, c] = f * pa[ia[k], 1]
+                    G[s, 1, c] = f * pa[ia[k], 2]
+                    G[s, 2, c] = f * pa[ia[k], 3]
                 flat[active] = s * N + c
                 active += 1
+        counts[s] = active - before
     return active
 
 
@@ -142,13 +150,11 @@ def collision_pass(
         grids.append(per_dtype[X.dtype])
     value = torch.zeros(N, dtype=X.dtype)
     G = torch.zeros(S, 3, N, dtype=X.dtype)
-    flat = torch.empty(S * N, dtype=torch.int64)
     if not grids:
-        return value, G, flat[:0]
+        return value, G, torch.empty(0, dtype=torch.int64)
     Xn = X.detach().contiguous().numpy()
     dt = Xn.dtype.type
-    n_active = _collision_pass(
-        Xn,
+    args = (
         dt(1.0 if D == 3 else 0.0),
         r.detach().reshape(-1).contiguous().numpy(),
         w.detach().repeat(N // w.shape[0]).numpy(),
@@ -159,6 +165,42 @@ def collision_pass(
         clamp,
         value.numpy(),
         G.numpy(),
-        flat.numpy(),
     )
-    return value, G, flat[: int(n_active)]
+    ranges = column_ranges(N)
+    flats = [np.empty(S * (c1 - c0), np.int64) for c0, c1 in ranges]
+    counts = [np.zeros(S, np.int64) for _ in ranges]
+    run_columns(lambda k, c0, c1: _collision_pass(Xn, c0, c1, *args, flats[k], counts[k]), ranges)
+    if len(ranges) == 1:
+        return value, G, torch.from_numpy(flats[0][: counts[0].sum()])
+    # the ranges' entries interleaved sphere by sphere: the order of one pass over all columns
+    parts = []
+    starts = [np.concatenate([[0], np.cumsum(c)]) for c in counts]
+    for s in range(S):
+        parts += [f[st[s] : st[s + 1]] for f, st in zip(flats, starts)]
+    return value, G, torch.from_numpy(np.concatenate(parts))
+
+
+# columns per thread below which one thread does it all (thread start-up costs ~50 us)
+MIN_COLUMNS_PER_THREAD = 2048
+_POOL: dict[int, ThreadPoolExecutor] = {}
+
+
+def column_ranges(N: int) -> list[tuple[int, int]]:
+    """Split N configurations into one contiguous range per torch intra-op thread (the compiled passes release the
+    GIL, so the ranges run in parallel threads); one range for small batches. The results do not depend on the
+    split: each configuration is computed by one thread, in the same order."""
+    n = max(1, min(torch.get_num_threads(), N // MIN_COLUMNS_PER_THREAD))
+    edges = [round(k * N / n) for k in range(n + 1)]
+    return [(edges[k], edges[k + 1]) for k in range(n)]
+
+
+def run_columns(fn, ranges: list[tuple[int, int]]) -> None:
+    """fn(k, c0, c1) for each range k, in a pool of threads when there is more than one."""
+    if len(ranges) == 1:
+        fn(0, *ranges[0])
+        return
+    pool = _POOL.get(len(ranges))
+    if pool is None:
+        pool = _POOL[len(ranges)] = ThreadPoolExecutor(len(ranges), thread_name_prefix="mpd-cost")
+    for f in [pool.submit(fn, k, c0, c1) for k, (c0, c1) in enumerate(ranges)]:
+        f.result()

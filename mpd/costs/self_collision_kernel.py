@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from numba import njit
 
+from mpd.costs.collision_kernel import column_ranges, run_columns
+
 
 @njit(cache=True, nogil=True)
 def _near(X, c, a, b, r2) -> bool:
@@ -29,14 +31,13 @@ def _near(X, c, a, b, r2) -> bool:
 
 
 @njit(cache=True, nogil=True)
-def _self_pass(X, a1, b1, r1, a2, b2, r2, pi, pj, rr, pen_out, cfg, best_i, best_j):
-    """For every configuration c of X (S, 3, N): if some frame pair (a1, b1, squared reach r1) and then some
+def _self_pass(X, c0, c1, a1, b1, r1, a2, b2, r2, pi, pj, rr, pen_out, cfg, best_i, best_j):
+    """For every configuration c0 <= c < c1 of X (S, 3, N): if some frame pair (a1, b1, squared reach r1) and then some
     cluster pair (a2, b2, r2) may touch, the maximum over the pairs (pi, pj) of rr - d, written to ``pen_out[c]``
     where positive (else it stays 0); the configurations with a positive one, and their deepest pair, go to
     ``cfg``, ``best_i``, ``best_j``; returns their number."""
-    N = X.shape[2]
     m = 0
-    for c in range(N):
+    for c in range(c0, c1):
         if not _near(X, c, a1, b1, r1):
             continue
         if not _near(X, c, a2, b2, r2):
@@ -85,11 +86,18 @@ def kernel_args(levels, blocks, used: np.ndarray, radii: np.ndarray, margin: flo
 
 
 def self_pass(X: torch.Tensor, args: tuple) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(per-configuration penetration (N,), active configurations (M,), their deepest pair i (M,), j (M,))."""
+    """(per-configuration penetration (N,), active configurations (M,), their deepest pair i (M,), j (M,)); the
+    configurations split over threads as in :func:`mpd.costs.collision_kernel.column_ranges`."""
     N = X.shape[2]
+    Xn = X.detach().contiguous().numpy()
     pen = torch.zeros(N, dtype=X.dtype)
-    cfg = torch.empty(N, dtype=torch.int64)
-    bi = torch.empty(N, dtype=torch.int64)
-    bj = torch.empty(N, dtype=torch.int64)
-    m = _self_pass(X.detach().contiguous().numpy(), *args, pen.numpy(), cfg.numpy(), bi.numpy(), bj.numpy())
-    return pen, cfg[:m], bi[:m], bj[:m]
+    ranges = column_ranges(N)
+    out = [np.empty((3, c1 - c0), np.int64) for c0, c1 in ranges]
+    m = [0] * len(ranges)
+
+    def one(k: int, c0: int, c1: int) -> None:
+        m[k] = _self_pass(Xn, c0, c1, *args, pen.numpy(), out[k][0], out[k][1], out[k][2])
+
+    run_columns(one, ranges)
+    cfg, bi, bj = torch.from_numpy(np.concatenate([o[:, :mk] for o, mk in zip(out, m)], axis=1))
+    return pen, cfg, bi, bj
