@@ -375,3 +375,36 @@ def test_committed_lock_is_reproduced(name, chunk, tmp_path, monkeypatch):
     assert lock is not None, f"{name} has no committed lock"
     generate(rd, workers=1, progress=False, chunks=[chunk])
     assert file_sha256(rd.data_dir / chunk_name(chunk)) == lock["outs"][chunk]["sha256"]
+
+
+_MKL_PROBE = """
+import os, sys, tempfile
+os.environ["MPD_CACHE"] = tempfile.mkdtemp()
+from mpd.data.definition import load_definition
+from mpd.data.generate import generate
+from mpd.data.storage import chunk_name
+from mpd.schema import file_sha256
+rd = load_definition(sys.argv[1])
+generate(rd, workers=1, progress=False, chunks=[0])
+print(file_sha256(rd.data_dir / chunk_name(0)))
+"""
+
+
+@pytest.mark.parametrize("name", ["EnvWarehouse-RobotPanda-small", "EnvSpheres3D-RobotPanda-small"])
+def test_generated_chunk_does_not_depend_on_the_processors_maths_library(name):
+    """torch's products, solves, sin, cos and sqrt on the CPU run MKL kernels chosen by processor, which round
+    differently on an Intel Xeon and an AMD EPYC (the committed Panda locks, made on one, were not reproduced on the
+    other). A chunk made with MKL's portable code path (``MKL_CBWR=COMPATIBLE``) must have the bytes of one made
+    with its default path: the data path's arithmetic (FK, IK, goal poses) does not go through MKL. On a processor
+    where the two paths are the same this cannot fail; on an Intel Xeon with AVX-512 it failed before the fix (IK
+    solutions differed by 8e-15, end-effector poses by 2e-16)."""
+    shas = []
+    for cbwr in (None, "COMPATIBLE"):
+        env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+        if cbwr:
+            env["MKL_CBWR"] = cbwr
+        out = subprocess.run(
+            [sys.executable, "-c", _MKL_PROBE, name], env=env, capture_output=True, text=True, check=True, timeout=600
+        )
+        shas.append(out.stdout.strip().splitlines()[-1])
+    assert shas[0] == shas[1]

@@ -23,6 +23,7 @@ from mpd.data.checkers import SphereChecker
 from mpd.data.definition import task_data_hash
 from mpd.data.planning import JointSpacePlanner, PlannerSettings, default_check_step, problem_seed
 from mpd.paths import cache_dir
+from mpd.robots.exact import mm as exact_mm
 from mpd.robots.ik import solve_ik
 from mpd.tasks import Task
 from mpd.tasks.spec import PoseRegionSpec
@@ -54,7 +55,8 @@ def sample_region_pose(region: PoseRegionSpec, rng: np.random.Generator) -> tupl
 
     pos = np.array([pick(region.x), pick(region.y), pick(region.z)])
     ang = [pick(region.rot_x_deg), pick(region.rot_y_deg), pick(region.rot_z_deg)]
-    rot = np.asarray(region.rotation_base, dtype=np.float64) @ Rotation.from_euler("xyz", ang, degrees=True).as_matrix()
+    base = torch.as_tensor(np.asarray(region.rotation_base, dtype=np.float64))
+    rot = exact_mm(base, torch.as_tensor(Rotation.from_euler("xyz", ang, degrees=True).as_matrix())).numpy()
     return pos, rot
 
 
@@ -238,7 +240,7 @@ class Contexts:
 
 
 def ee_goal_pose(task: Task, q_goal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    p, r = task.robot.ee_pose(torch.as_tensor(q_goal, dtype=torch.float64))
+    p, r = task.robot.ee_pose(torch.as_tensor(q_goal, dtype=torch.float64), exact=True)  # the same bits on every CPU
     return p.numpy(), r.numpy()
 
 

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from mpd.robots import exact as _exact
+
 _NEXT = ((1, 2), (2, 0), (0, 1))  # component k of a x b is a[k1] b[k2] - a[k2] b[k1]
 
 
@@ -216,11 +218,14 @@ class KinematicChain:
         return self._cache[key]
 
     # ------------------------------------------------------------------ forward kinematics
-    def forward(self, q: torch.Tensor, *, points: bool = True, ee: bool = True) -> Kinematics:
-        """FK for q of shape (B, dof)."""
+    def forward(self, q: torch.Tensor, *, points: bool = True, ee: bool = True, exact: bool = False) -> Kinematics:
+        """FK for q of shape (B, dof). ``exact``: every product written out in a fixed order
+        (:mod:`mpd.robots.exact`), the same bits on every CPU, instead of MKL's processor-specific kernels (the
+        data-generation path; slower)."""
         if q.shape[-1] != self.dof:
             raise ValueError(f"expected configurations with {self.dof} joints, got shape {tuple(q.shape)}")
         c = self._c(q.dtype, q.device)
+        mm = _exact.mm if exact else torch.matmul
         B, dof = q.shape[0], self.dof
         # Frames, batch-last: F[f, b, a, :] = R_f[a, b] (b < 3) and F[f, 3, a, :] = p_f[a], so that F[f]
         # viewed as (4, 3B) is the (transposed) [R | p] block of every configuration, and right-multiplying a
@@ -233,13 +238,13 @@ class KinematicChain:
         # when q needs a gradient, every frame is a fresh tensor that is copied into F (the same arithmetic).
         track = q.requires_grad and torch.is_grad_enabled()
         qt = q.t().contiguous()
-        s, co = torch.sin(qt), 1 - torch.cos(qt)
+        s, co = (_exact.sin(qt), 1 - _exact.cos(qt)) if exact else (torch.sin(qt), 1 - torch.cos(qt))
         axes = q.new_empty(dof, 3, B)
         origins = q.new_empty(dof, 3, B)
         R = F[0, :3].clone() if track else F[0, :3]
         for j in range(dof):
             # rows: R Off_R, R Off_R K, R Off_R K^2 (Rodrigues terms), the world axis, R_parent off_p
-            P = (c["joint_t"][j] @ R.reshape(3, 3 * B)).view(11, 3, B)
+            P = mm(c["joint_t"][j], R.reshape(3, 3 * B)).view(11, 3, B)
             o = F[j, 3] + P[10]
             if self.revolute[j]:
                 Rn = torch.addcmul(P[0:3], s[j], P[3:6], out=None if track else F[j + 1, :3])
@@ -247,7 +252,7 @@ class KinematicChain:
                 ax, pn = P[9], o
             else:
                 Rn = P[0:3]
-                ax = (c["axes_row"][j] @ Rn.reshape(3, 3 * B)).view(3, B)
+                ax = mm(c["axes_row"][j], Rn.reshape(3, 3 * B)).view(3, B)
                 pn = torch.addcmul(o, ax, qt[j])
             if track or not self.revolute[j]:
                 F[j + 1, :3] = Rn
@@ -258,7 +263,9 @@ class KinematicChain:
         pts_t = None
         if points:
             Fm = F.view(4 * (dof + 1), 3 * B)
-            if self._point_blocks is None:
+            if exact:
+                pts_t = mm(c["wpoints_t"], Fm).view(-1, 3, B)
+            elif self._point_blocks is None:
                 pts_t = (c["wpoints_t"] @ Fm).view(-1, 3, B)
             else:
                 # one small product per frame, written into its rows of the output (concatenated for autograd)
@@ -272,15 +279,15 @@ class KinematicChain:
                     pts_t = q.new_empty(len(self.point_joint), 3, B)
                     for w, x, lo, hi in blocks:
                         torch.mm(w, x, out=pts_t[lo:hi].view(hi - lo, 3 * B))
-        ee_pos, ee_rot = self._ee_pose(F, c) if ee else (None, None)
+        ee_pos, ee_rot = self._ee_pose(F, c, mm) if ee else (None, None)
         return Kinematics.from_batch_last(q, axes, origins, pts_t, ee_pos, ee_rot, F)
 
-    def _ee_pose(self, F: torch.Tensor, c: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    def _ee_pose(self, F: torch.Tensor, c: dict, mm=torch.matmul) -> tuple[torch.Tensor, torch.Tensor]:
         """End-effector position (B, 3) and rotation (B, 3, 3) from the batch-last frames F."""
         B = F.shape[-1]
         Re = F[self.ee_joint + 1, :3].reshape(3, 3 * B)
-        ee_rot = (c["ee_r_t"] @ Re).view(3, 3, B).permute(2, 1, 0)
-        ee_pos = (F[self.ee_joint + 1, 3] + (c["ee_p_row"] @ Re).view(3, B)).t()
+        ee_rot = mm(c["ee_r_t"], Re).view(3, 3, B).permute(2, 1, 0)
+        ee_pos = (F[self.ee_joint + 1, 3] + mm(c["ee_p_row"], Re).view(3, B)).t()
         return ee_pos, ee_rot
 
     def select(self, kin: Kinematics, idx: torch.Tensor) -> Kinematics:

@@ -8,7 +8,9 @@ All targets and all restarts are one batch of ``n_targets * n_restarts`` configu
     q  = clamp(q + dq, q_min, q_max)
 
 A restart stops moving once it is within the tolerances. Planar robots work unchanged: their Jacobian rows for
-z, roll and pitch are zero and so are the errors there. Results depend only on the inputs and the generator.
+z, roll and pitch are zero and so are the errors there. Results depend only on the inputs and the generator, on
+every CPU: the FK, the products and the 6 x 6 solve are the fixed-order ones of :mod:`mpd.robots.exact` (MKL's
+processor-specific kernels changed the last bits of the solutions, and with them the datasets' contexts).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
+from mpd.robots.exact import mm, spd_solve
 from mpd.robots.robot import Robot
 
 
@@ -46,11 +49,11 @@ def rotation_log(r: torch.Tensor) -> torch.Tensor:
 
 def pose_errors(robot: Robot, q: torch.Tensor, pos: torch.Tensor, rot: torch.Tensor | None):
     """Position error (...) in m and orientation error (...) in rad of configurations q against targets."""
-    p, r = robot.ee_pose(q)
+    p, r = robot.ee_pose(q, exact=True)
     ep = (pos - p).norm(dim=-1)
     if rot is None:
         return ep, torch.zeros_like(ep)
-    return ep, rotation_log(rot @ r.transpose(-1, -2)).norm(dim=-1)
+    return ep, rotation_log(mm(rot, r.transpose(-1, -2))).norm(dim=-1)
 
 
 def solve_ik(
@@ -114,9 +117,9 @@ def solve_ik(
         idx = active.nonzero()[:, 0]
         if len(idx) == 0:
             break
-        kin = robot.kinematics(q[idx], spheres=False, ee=True)
+        kin = robot.kinematics(q[idx], spheres=False, ee=True, exact=True)
         e_pos = tp[idx] - kin.ee_pos
-        e_rot = rotation_log(tr[idx] @ kin.ee_rot.transpose(-1, -2)) if tr is not None else torch.zeros_like(e_pos)
+        e_rot = rotation_log(mm(tr[idx], kin.ee_rot.transpose(-1, -2))) if tr is not None else torch.zeros_like(e_pos)
         # iterate to a tenth of the tolerances: near a solution DLS converges fast, and the margin keeps a
         # solution inside the tolerances after float32 round trips or a re-check with another FK
         conv = (e_pos.norm(dim=-1) < 0.1 * pos_tol) & (e_rot.norm(dim=-1) < 0.1 * rot_tol)
@@ -139,8 +142,8 @@ def solve_ik(
         J = robot.chain.ee_jacobian(kin)[run]
         if tr is None:
             J[:, 3:] = 0  # position only
-        A = J @ J.transpose(-1, -2) + damping**2 * eye6
-        dq = (J.transpose(-1, -2) @ torch.linalg.solve(A, e[..., None]))[..., 0]
+        A = mm(J, J.transpose(-1, -2)) + damping**2 * eye6
+        dq = mm(J.transpose(-1, -2), spd_solve(A, e)[..., None])[..., 0]
         q[rows] = torch.minimum(torch.maximum(q[rows] + dq, lo), hi)
     ep, er = pose_errors(robot, q, tp, tr)
     within = (ep < pos_tol) & (er < rot_tol)

@@ -103,9 +103,9 @@ class Robot:
         return ((q >= lo - eps) & (q <= hi + eps)).all(-1)
 
     # ------------------------------------------------------------------ kinematics
-    def kinematics(self, q: torch.Tensor, *, spheres: bool = True, ee: bool = True) -> Kinematics:
-        """FK for q of shape (B, dof); the batch must be flat."""
-        return self.chain.forward(q, points=spheres, ee=ee)
+    def kinematics(self, q: torch.Tensor, *, spheres: bool = True, ee: bool = True, exact: bool = False) -> Kinematics:
+        """FK for q of shape (B, dof); the batch must be flat. ``exact``: see :meth:`ee_pose`."""
+        return self.chain.forward(q, points=spheres, ee=ee, exact=exact)
 
     def sphere_centres(self, q: torch.Tensor) -> torch.Tensor:
         """(..., dof) -> (..., S, task_dim)."""
@@ -115,10 +115,11 @@ class Robot:
         # checks (self-collision pairs, grid lookups) run 10-15x slower than the copy costs
         return kin.points[..., : self.task_dim].reshape(*shape, self.n_spheres, self.task_dim).contiguous()
 
-    def ee_pose(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end effector (3-D, also for planar arms)."""
+    def ee_pose(self, q: torch.Tensor, exact: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., dof) -> position (..., 3), rotation (..., 3, 3) of the end effector (3-D, also for planar arms).
+        ``exact``: the same bits on every CPU (:mod:`mpd.robots.exact`; the data-generation path)."""
         shape = q.shape[:-1]
-        kin = self.chain.forward(q.reshape(-1, self.dof), points=False, ee=True)
+        kin = self.chain.forward(q.reshape(-1, self.dof), points=False, ee=True, exact=exact)
         return kin.ee_pos.reshape(*shape, 3), kin.ee_rot.reshape(*shape, 3, 3)
 
     def ee_jacobian(self, q: torch.Tensor) -> torch.Tensor:
