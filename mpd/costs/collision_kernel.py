@@ -201,6 +201,8 @@ def run_columns(fn, ranges: list[tuple[int, int]]) -> None:
         return
     pool = _POOL.get(len(ranges))
     if pool is None:
-        pool = _POOL[len(ranges)] = ThreadPoolExecutor(len(ranges), thread_name_prefix="mpd-cost")
-    for f in [pool.submit(fn, k, c0, c1) for k, (c0, c1) in enumerate(ranges)]:
+        pool = _POOL[len(ranges)] = ThreadPoolExecutor(len(ranges) - 1, thread_name_prefix="mpd-cost")
+    futures = [pool.submit(fn, k, c0, c1) for k, (c0, c1) in enumerate(ranges) if k > 0]
+    fn(0, *ranges[0])  # this thread takes the first range
+    for f in futures:
         f.result()

@@ -1,0 +1,107 @@
+"""The four plans of the speed issue, in the setting the authors' planner is timed in (``../shared/official-bench``):
+100 samples, 15 DDIM steps (quadratic, eta 0.5), random weights of the authors' model sizes, 2 threads.
+
+* ``mpd/panda``: MPD on EnvSpheres3D-RobotPanda with the extra objects, the authors' released models' 24 free
+  control points (29 in all), guidance on the last 5 DDIM steps x 4 = 20 cost-gradient calls;
+* ``prior/panda``: Dprior (no guidance), same task and network;
+* ``mpd/simple2d`` and ``prior/simple2d``: EnvSimple2D-RobotPointMass2D (16 free control points), extra objects.
+
+Each plan also runs with ``planner.network_precision = "bf16"`` where the CPU computes bfloat16 natively (fp32
+everywhere: the fp32 path is always benchmarked). Medians of 7 rounds after one warm-up; the planner's own
+breakdown (network, cost gradient, each cost) of the median round is stored in ``extra_info``.
+
+Run: ``pytest benchmarks/test_bench_plans.py -m benchmark --benchmark-only --benchmark-enable`` (``nox -s
+benchmarks``), alone on the machine: another process on the same cores makes every figure meaningless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+
+import pytest
+import torch
+
+from mpd.device import native_bf16
+from mpd.models.checkpoint import LoadedModel, build_network
+from mpd.models.normalizer import Normalizer
+from mpd.planners import Context, make_planner
+from mpd.tasks import load_task
+from mpd.tasks.task import Task
+from mpd.trajectory import make_parametrization
+
+pytestmark = pytest.mark.benchmark
+
+THREADS = 2
+# the authors' released models: 18 desired control points -> 24 learnable + 5 fixed for the Panda (reference README)
+AUTHORS_N_CONTROL = {"EnvSpheres3D-RobotPanda": 29, "EnvSimple2D-RobotPointMass2D": 22}
+TASKS = {"panda": "EnvSpheres3D-RobotPanda", "simple2d": "EnvSimple2D-RobotPointMass2D"}
+PRECISIONS = ["fp32"] + (["bf16"] if native_bf16(torch.device("cpu")) else [])
+
+
+def authors_task(name: str) -> Task:
+    """The task with the authors' released number of control points (the rest of its file unchanged)."""
+    task = load_task(name)
+    tr = dataclasses.replace(task.spec.trajectory, n_control_points=AUTHORS_N_CONTROL[name])
+    return Task(dataclasses.replace(task.spec, trajectory=tr), task.path)
+
+
+def random_model(task: Task) -> LoadedModel:
+    param = make_parametrization(task)
+    kind = "goal_ee_pose" if task.ee_goal else "goal_joint_position"
+    torch.manual_seed(0)
+    net = build_network("diffusion", task.dof, param.n_free, kind, task.spec.model).eval()
+    lo, hi = task.robot.q_min.float(), task.robot.q_max.float()
+    norms = {"q_start": Normalizer(lo, hi)}
+    norms.update(
+        {"ee_pos": Normalizer(-torch.ones(3), torch.ones(3))} if task.ee_goal else {"q_goal": Normalizer(lo, hi)}
+    )
+    meta = {"task_name": task.name, "parametrization": "bspline", "horizon": param.n_free, "dof": task.dof}
+    meta["context_kind"] = kind
+    return LoadedModel("diffusion", net.requires_grad_(False), Normalizer(lo, hi), norms, meta, path="<random>")
+
+
+def context(task: Task) -> Context:
+    if task.ee_goal:
+        qs = torch.tensor([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
+        p, r = task.robot.ee_pose(torch.tensor([0.5, 0.3, -0.4, -2.0, 0.2, 2.0, 0.5], dtype=torch.float64))
+        return Context(qs, None, p.float(), r.float())
+    return Context(torch.tensor([-0.8, -0.8]), torch.tensor([0.8, 0.8]), None, None)
+
+
+@pytest.fixture(autouse=True)
+def two_threads():
+    n = torch.get_num_threads()
+    torch.set_num_threads(THREADS)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("method", ["mpd", "prior"])
+@pytest.mark.parametrize("which", list(TASKS))
+def test_plan(benchmark, which, method, precision):
+    task = authors_task(TASKS[which])
+    planner = make_planner(
+        "mpd" if method == "mpd" else "dprior",
+        task,
+        model=random_model(task),
+        device="cpu",
+        extra_objects=True,
+        overrides={"guide_fraction": 0.3, "network_precision": precision},
+    )
+    ctx = context(task)
+    timings = []
+
+    def run():
+        timings.append(planner.plan(ctx, 100, seed=0).timings)
+
+    benchmark.pedantic(run, rounds=7, warmup_rounds=1)
+    runs = timings[1:]  # the warm-up's first
+    walls = [t["total"] for t in runs]
+    t = runs[walls.index(sorted(walls)[len(walls) // 2])]
+    if method == "mpd":
+        assert int(t["cost_gradient_calls"]) == 20
+    benchmark.extra_info.update({k: round(float(v), 4) for k, v in t.items()})
+    benchmark.extra_info["median_total_s"] = round(statistics.median(walls), 4)
+    benchmark.extra_info["free_control_points"] = make_parametrization(task).n_free
