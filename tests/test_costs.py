@@ -467,17 +467,28 @@ def test_compiled_collision_pass_is_the_torch_path(key, dtype):
     X[:, :D, cols[len(cols) // 2 :: 7]] = hi.view(1, D, 1).to(dtype)  # exactly on the upper faces
     radius = (task.robot.sphere_radii + 0.05).to(X)[:, None]
     w = torch.rand(dense.q.shape[1], generator=g, dtype=dtype)
-    value, G, flat = collision_kernel.collision_pass(env, X, radius, w, 3.0, reach=None)
+    chain = task.robot.chain
+    frame, lw = chain.point_moments_weights(dtype)
+    value, flat, rows, H = collision_kernel.collision_pass(
+        env, X, radius, w, 3.0, reach=None, moments=(frame, lw, chain.dof)
+    )
     # the torch path (CollisionCost's reference lines)
     d, gd = sdf_batch_last(env, X[:, :D], "nearest")
     a = radius - d
     relu = a.clamp_min(0)
     wN = w.repeat(N // len(w))
     assert torch.equal(flat, (relu > 0).reshape(-1).nonzero().squeeze(1))
-    torch.testing.assert_close(value, (relu * wN).sum(0), rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=0)
-    ref_G = torch.zeros_like(G)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(value, (relu * wN).sum(0), rtol=tol, atol=0)
+    ref_G = torch.zeros(S, 3, N, dtype=dtype)
     ref_G[:, :D] = (relu > 0)[:, None] * (-3.0 * wN) * gd
-    torch.testing.assert_close(G, ref_G, rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=0)
+    G = torch.zeros_like(ref_G)
+    G[flat // N, :, flat % N] = rows
+    torch.testing.assert_close(G, ref_G, rtol=tol, atol=0)
+    # the moments accumulated in the pass give the Jacobian product of the (S, 3, N) gradient
+    kin = inp.kinematics()
+    ref_q = chain.points_vjp_frames(kin, ref_G)
+    torch.testing.assert_close(chain.vjp_from_moments(kin, H), ref_q, rtol=tol * 10, atol=tol * 10 * ref_q.abs().max())
     # and the whole cost through both paths (the kernel skips the clamping when the reach ball lies in the box)
     terms = {}
     for compiled in (True, False):
@@ -511,13 +522,15 @@ def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
             torch.set_num_threads(threads)
             monkeypatch.setattr(collision_kernel, "MIN_COLUMNS_PER_THREAD", min_cols)
             assert len(collision_kernel.column_ranges(X.shape[2])) == max(1, min(threads, X.shape[2] // min_cols))
+            chain = task.robot.chain
+            moments = (*chain.point_moments_weights(X.dtype), chain.dof)
             out[threads] = (
-                *collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=None),
+                *collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=None, moments=moments),
                 *self_collision_kernel.self_pass(X, sargs),
             )
     finally:
         torch.set_num_threads(n_threads)
-    assert out[1][2].numel() > 0 and out[1][4].numel() > 0
+    assert out[1][1].numel() > 0 and out[1][5].numel() > 0
     for threads in (3, 4):
         for a, b in zip(out[1], out[threads]):
             assert torch.equal(a, b)

@@ -45,15 +45,24 @@ class CollisionCost(Cost):
         w = self.weights(inp)
         if self.compiled and inp.sdf_mode == "nearest" and collision_kernel.supported(X):
             # one compiled pass (the torch lines below are its reference)
-            per_config, G, flat = collision_kernel.collision_pass(
-                inp.env, X, self._consts[key]["r"], w, weight, self.robot.chain.reach
+            chain = self.robot.chain
+            mkey = ("moments", X.dtype)
+            if mkey not in self._consts:
+                mw = chain.point_moments_weights(X.dtype)
+                self._consts[mkey] = None if mw is None else (*mw, chain.dof)
+            moments = self._consts[mkey] if kin.frames_t is not None else None
+            per_config, flat, rows, H = collision_kernel.collision_pass(
+                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, moments
             )
             value = per_config.view(B, n).sum(-1)
-            if flat.numel() > SPARSE_FRACTION * S * N:
-                g_q = self.robot.chain.points_vjp_frames(kin, G)
+            if flat.numel() <= SPARSE_FRACTION * S * N:
+                g_q = spheres_vjp_sparse(self.robot, kin, flat, rows[:, :D], N)
+            elif H is not None:
+                g_q = chain.vjp_from_moments(kin, H)
             else:
-                g_act = G[flat // N, :D, flat % N]
-                g_q = spheres_vjp_sparse(self.robot, kin, flat, g_act, N)
+                G = X.new_zeros(S, 3, N)
+                G[flat // N, :, flat % N] = rows
+                g_q = chain.points_vjp_frames(kin, G)
             return CostTerm(value, g_q=g_q.view(B, n, dof))
         d, g = sdf_batch_last(inp.env, X[:, :D], inp.sdf_mode, self.robot.chain.reach)
         a = self._consts[key]["r"] - d  # (S, N): depth inside the margin-inflated obstacles

@@ -6,7 +6,9 @@ the per-point weights, the (S, 3, N) gradient), ~15 ms for 100 Panda trajectorie
 kernel does them in one compiled pass (numba, ``cache=True``): for each sphere centre it finds the nearest grid node
 of each object set exactly as :func:`mpd.costs.sdf._nearest` does, keeps the closer set (the extra one only when
 strictly closer), and writes the depth inside the margin-inflated obstacles into the trajectory's cost and, where
-positive, ``coef * grad sdf`` into the centre gradient. The Jacobian product stays the torch one.
+positive, ``coef * grad sdf`` into the centre gradient. The Jacobian product's per-frame moments are accumulated
+in the same pass (no (S, 3, N) gradient array); the joint-axis products stay torch's
+(:meth:`mpd.robots.chain.Chain.vjp_from_moments`).
 
 ``tests/test_costs.py`` pins the kernel to the torch path (values, gradients, the active count) on points inside,
 on the boundary of and outside the grid boxes, with and without extra objects.
@@ -44,7 +46,9 @@ def _nodes(X, s, c0, c1, zscale, lo, hi, cell, nmax, step, clamp, idx, out):
 
 
 @njit(cache=True, nogil=True)
-def _collision_pass(X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, value, G, flat, counts):
+def _collision_pass(
+    X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, frame, lw, use_h, value, H, rows, flat, counts
+):
     """One pass over the columns c0 .. c1 - 1 of the (S, N) grid of sphere centres X (S, 3, N), a sphere (row of
     centres) at a time.
 
@@ -53,9 +57,12 @@ def _collision_pass(X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clam
     (``clamp``; False when every point is known to lie inside), the nearest node's row, the point's distance to the
     box added. 2-D grids are stored as 3-D ones of one layer, and ``zscale`` = 0 drops the points' z. ``r`` (S,):
     radius + margin; ``w`` (N,): quadrature weight of each configuration's trajectory point; ``coef``: -weight.
-    Adds to ``value`` (N,) (sum over spheres of relu(r - d) w), writes ``coef w grad sdf`` into the active entries of
-    ``G`` (S, 3, N) (zeros given) and ``flat[:E]`` (the active entries s * N + c, in order, ``counts[s]`` of them
-    for sphere s); returns E. Disjoint column ranges can run at once (threads): they write disjoint entries.
+    Adds to ``value`` (N,) (sum over spheres of relu(r - d) w); writes the active entries ``flat[:E]`` (s * N + c, in
+    order, ``counts[s]`` of them for sphere s) and their centre gradients ``coef w grad sdf`` as ``rows[:E]`` (E, 3);
+    returns E. With ``use_h`` it also adds each active gradient to the moments of its sphere's frame,
+    ``H[f - 1, m, :, c] += lw[s, m] g`` (``frame[s]`` = f, 0 = the root, which no joint moves): the Jacobian
+    product then needs no (S, 3, N) gradient array (:meth:`mpd.robots.chain.Chain.vjp_from_moments`). Disjoint
+    column ranges can run at once (threads): they write disjoint entries.
 
     Per sphere in simple loops that the compiler vectorizes: node rows, the distance gather, the depth, then the
     few active entries (one loop with a data-dependent branch per entry was 5x slower).
@@ -87,18 +94,27 @@ def _collision_pass(X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clam
         for k in range(n):
             value[c0 + k] += max(rs - d[k], 0) * w[c0 + k]
         before = active
+        fs = frame[s]
         for k in range(n):
             if rs - d[k] > 0:
                 c = c0 + k
                 f = coef * w[c]
                 if n_grids > 1 and use_b[k]:
-                    G[s, 0, c] = f * pb[ib[k], 1]
-                    G[s, 1, c] = f * pb[ib[k], 2]
-                    G[s, 2, c] = f * pb[ib[k], 3]
+                    g0 = f * pb[ib[k], 1]
+                    g1 = f * pb[ib[k], 2]
+                    g2 = f * pb[ib[k], 3]
                 else:
-                    G[s, 0, c] = f * pa[ia[k], 1]
-                    G[s, 1, c] = f * pa[ia[k], 2]
-                    G[s, 2, c] = f * pa[ia[k], 3]
+                    g0 = f * pa[ia[k], 1]
+                    g1 = f * pa[ia[k], 2]
+                    g2 = f * pa[ia[k], 3]
+                rows[active, 0] = g0
+                rows[active, 1] = g1
+                rows[active, 2] = g2
+                if use_h and fs > 0:
+                    for m in range(4):
+                        H[fs - 1, m, 0, c] += lw[s, m] * g0
+                        H[fs - 1, m, 1, c] += lw[s, m] * g1
+                        H[fs - 1, m, 2, c] += lw[s, m] * g2
                 flat[active] = s * N + c
                 active += 1
         counts[s] = active - before
@@ -129,12 +145,19 @@ def supported(X: torch.Tensor) -> bool:
 
 
 def collision_pass(
-    env, X: torch.Tensor, r: torch.Tensor, w: torch.Tensor, weight: float, reach: float | None = None
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(per-configuration value (N,), centre gradient (S, 3, N), active entries (E,) as s * N + c) for centres
-    X (S, 3, N): see the module docstring. ``X[:, D:]`` is ignored for a D < 3 task (its gradient rows are 0).
-    ``reach``: a bound of |x| (the robot's reach around the origin); when every grid box contains that ball, no
-    point needs clamping."""
+    env,
+    X: torch.Tensor,
+    r: torch.Tensor,
+    w: torch.Tensor,
+    weight: float,
+    reach: float | None = None,
+    moments: tuple[np.ndarray, np.ndarray, int] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """For centres X (S, 3, N): (per-configuration value (N,), active entries (E,) as s * N + c, their centre
+    gradients (E, 3), the frames' moments H (dof, 4, 3, N) or None); see the module docstring. ``X[:, D:]`` is
+    ignored for a D < 3 task (its gradient rows are 0). ``reach``: a bound of |x| (the robot's reach around the
+    origin); when every grid box contains that ball, no point needs clamping. ``moments``: (frame of each sphere,
+    its [l; 1] weights, dof) from :meth:`mpd.robots.chain.Chain.point_moments_weights`, to accumulate H."""
     S, _, N = X.shape
     D = env.dim
     grids = []
@@ -149,11 +172,16 @@ def collision_pass(
             per_dtype[X.dtype] = _grid_args(grid, X.dtype)
         grids.append(per_dtype[X.dtype])
     value = torch.zeros(N, dtype=X.dtype)
-    G = torch.zeros(S, 3, N, dtype=X.dtype)
+    H = torch.zeros(moments[2], 4, 3, N, dtype=X.dtype) if moments is not None else None
     if not grids:
-        return value, G, torch.empty(0, dtype=torch.int64)
+        return value, torch.empty(0, dtype=torch.int64), torch.empty(0, 3, dtype=X.dtype), H
     Xn = X.detach().contiguous().numpy()
     dt = Xn.dtype.type
+    if moments is not None:
+        frame, lw = moments[0], moments[1].astype(Xn.dtype, copy=False)
+        Hn = H.numpy()
+    else:
+        frame, lw, Hn = np.zeros(S, np.int64), np.zeros((S, 4), Xn.dtype), np.zeros((1, 4, 3, 1), Xn.dtype)
     args = (
         dt(1.0 if D == 3 else 0.0),
         r.detach().reshape(-1).contiguous().numpy(),
@@ -163,21 +191,28 @@ def collision_pass(
         grids[-1],
         len(grids),
         clamp,
+        frame,
+        lw,
+        moments is not None,
         value.numpy(),
-        G.numpy(),
+        Hn,
     )
     ranges = column_ranges(N)
+    rows = [np.empty((S * (c1 - c0), 3), Xn.dtype) for c0, c1 in ranges]
     flats = [np.empty(S * (c1 - c0), np.int64) for c0, c1 in ranges]
     counts = [np.zeros(S, np.int64) for _ in ranges]
-    run_columns(lambda k, c0, c1: _collision_pass(Xn, c0, c1, *args, flats[k], counts[k]), ranges)
+    run_columns(lambda k, c0, c1: _collision_pass(Xn, c0, c1, *args, rows[k], flats[k], counts[k]), ranges)
     if len(ranges) == 1:
-        return value, G, torch.from_numpy(flats[0][: counts[0].sum()])
+        e = int(counts[0].sum())
+        return value, torch.from_numpy(flats[0][:e]), torch.from_numpy(rows[0][:e]), H
     # the ranges' entries interleaved sphere by sphere: the order of one pass over all columns
-    parts = []
+    fparts, rparts = [], []
     starts = [np.concatenate([[0], np.cumsum(c)]) for c in counts]
     for s in range(S):
-        parts += [f[st[s] : st[s + 1]] for f, st in zip(flats, starts)]
-    return value, G, torch.from_numpy(np.concatenate(parts))
+        for f, g, st in zip(flats, rows, starts):
+            fparts.append(f[st[s] : st[s + 1]])
+            rparts.append(g[st[s] : st[s + 1]])
+    return value, torch.from_numpy(np.concatenate(fparts)), torch.from_numpy(np.concatenate(rparts)), H
 
 
 # columns per thread below which one thread does it all (thread start-up costs ~50 us)

@@ -352,9 +352,26 @@ class KinematicChain:
             if f > 0:
                 w = c["wpoints_t"][lo:hi, 4 * f : 4 * f + 4]
                 torch.mm(w.t(), gm[lo:hi], out=H[f - 1].view(4, 3 * B))
+        return self.vjp_from_moments(kin, H)
+
+    def point_moments_weights(self, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray] | None:
+        """(frame of each point (P,), its [l; 1] weights (P, 4)) for accumulating the moments H of
+        :meth:`vjp_from_moments` elsewhere (the compiled collision pass); None when the chain has no sorted points."""
+        if self._point_blocks is None:
+            return None
+        W = self._c(dtype, torch.device("cpu"))["wpoints_t"].numpy()
+        frame = self.point_joint + 1
+        rows = np.stack([W[s, 4 * f : 4 * f + 4] for s, f in enumerate(frame)])
+        return frame.astype(np.int64), np.ascontiguousarray(rows)
+
+    def vjp_from_moments(self, kin: Kinematics, H: torch.Tensor) -> torch.Tensor:
+        """J^T g (B, dof) from the per-frame moments H (dof, 4, 3, B), H[f - 1, m, k] = sum over the points s on frame
+        f of [l_s; 1][m] g_s[k] (see :meth:`points_vjp_frames`); H is overwritten."""
+        c = self._c(H.dtype, H.device)
+        dof, B = self.dof, H.shape[3]
         T = kin.frames_t[1:]  # T[f, m, i] = [R_f | p_f][i, m]
         # M_f = sum_m T[:, m] x H[:, m], accumulated in place (fused multiply-adds on (dof, B) rows, no temporaries)
-        M = g.new_empty(dof, 3, B)
+        M = H.new_empty(dof, 3, B)
         for k, (k1, k2) in enumerate(_NEXT):
             Mk = torch.mul(T[:, 0, k1], H[:, 0, k2], out=M[:, k])
             Mk.addcmul_(T[:, 0, k2], H[:, 0, k1], value=-1)
