@@ -96,7 +96,8 @@ def cuda_tests(quick: bool) -> dict:
     }
 
 
-def _random_model(task, param):
+def random_model(task, param):
+    """A diffusion prior of the task's network sizes with random (seeded) weights: timing does not depend on them."""
     import torch
 
     from mpd.models.checkpoint import LoadedModel, build_network
@@ -120,7 +121,8 @@ def _random_model(task, param):
     return LoadedModel("diffusion", net.requires_grad_(False), Normalizer(lo, hi), norms, meta, path="<random>")
 
 
-def _context(task, device):
+def plan_context(task, device):
+    """A fixed planning context of the task (an EE goal pose for the Panda, a joint goal for the 2-D tasks)."""
     import torch
 
     from mpd.planners import Context
@@ -142,8 +144,8 @@ def plans(device: str, rounds: int, quick: bool = False) -> dict:
     for task_name in tasks[1:] if quick else tasks:
         task = load_task(task_name)
         param = make_parametrization(task)
-        model = _random_model(task, param)
-        ctx = _context(task, device)
+        model = random_model(task, param)
+        ctx = plan_context(task, device)
         for method in ("mpd", "dprior"):
             planner = make_planner(method, task, model=model, device=device, extra_objects=True)
             timings = []

@@ -21,11 +21,10 @@ import statistics
 
 import pytest
 import torch
+from gpu_check import plan_context, random_model  # benchmarks/: the random-weight model and context of the GPU check
 
 from mpd.device import native_bf16
-from mpd.models.checkpoint import LoadedModel, build_network
-from mpd.models.normalizer import Normalizer
-from mpd.planners import Context, make_planner
+from mpd.planners import make_planner
 from mpd.tasks import load_task
 from mpd.tasks.task import Task
 from mpd.trajectory import make_parametrization
@@ -46,29 +45,6 @@ def authors_task(name: str) -> Task:
     return Task(dataclasses.replace(task.spec, trajectory=tr), task.path)
 
 
-def random_model(task: Task) -> LoadedModel:
-    param = make_parametrization(task)
-    kind = "goal_ee_pose" if task.ee_goal else "goal_joint_position"
-    torch.manual_seed(0)
-    net = build_network("diffusion", task.dof, param.n_free, kind, task.spec.model).eval()
-    lo, hi = task.robot.q_min.float(), task.robot.q_max.float()
-    norms = {"q_start": Normalizer(lo, hi)}
-    norms.update(
-        {"ee_pos": Normalizer(-torch.ones(3), torch.ones(3))} if task.ee_goal else {"q_goal": Normalizer(lo, hi)}
-    )
-    meta = {"task_name": task.name, "parametrization": "bspline", "horizon": param.n_free, "dof": task.dof}
-    meta["context_kind"] = kind
-    return LoadedModel("diffusion", net.requires_grad_(False), Normalizer(lo, hi), norms, meta, path="<random>")
-
-
-def context(task: Task) -> Context:
-    if task.ee_goal:
-        qs = torch.tensor([0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785])
-        p, r = task.robot.ee_pose(torch.tensor([0.5, 0.3, -0.4, -2.0, 0.2, 2.0, 0.5], dtype=torch.float64))
-        return Context(qs, None, p.float(), r.float())
-    return Context(torch.tensor([-0.8, -0.8]), torch.tensor([0.8, 0.8]), None, None)
-
-
 @pytest.fixture(autouse=True)
 def two_threads():
     n = torch.get_num_threads()
@@ -85,12 +61,12 @@ def test_plan(benchmark, which, method, precision):
     planner = make_planner(
         "mpd" if method == "mpd" else "dprior",
         task,
-        model=random_model(task),
+        model=random_model(task, make_parametrization(task)),
         device="cpu",
         extra_objects=True,
         overrides={"guide_fraction": 0.3, "network_precision": precision},
     )
-    ctx = context(task)
+    ctx = plan_context(task, "cpu")
     timings = []
 
     def run():
