@@ -142,6 +142,45 @@ def test_resume_at_chunk_granularity(reference, tmp_path, monkeypatch):
     assert lock2["content_hash"] == lock["content_hash"]
 
 
+def test_resume_keeps_finished_chunks_when_the_committed_lock_is_stale(reference, tmp_path, monkeypatch, capsys):
+    """A committed lock that this code (or this CPU) does not reproduce must not make a resumed generation throw away
+    its finished chunks (they would come out the same again); chunks made by other code are still regenerated."""
+    _, lock, ref_bytes, _ = reference
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    p = _define(tmp_path / "defs", "tiny")
+    rd = load_definition(p)
+    stale = json.loads(json.dumps(lock))
+    for o in stale["outs"]:
+        o["sha256"] = "0" * 64
+    stale["content_hash"] = "1" * 64
+    rd.lock_path.write_text(json.dumps(stale, indent=1) + "\n")
+    generate(p, workers=1, progress=False, chunks=[0, 2])  # an interrupted run
+    assert sorted(chunk_states(rd)) == [0, 1, 2]  # 0 and 2 differ from the stale lock, 1 is missing
+    before = {i: (rd.data_dir / chunk_name(i)).stat() for i in (0, 2)}
+    capsys.readouterr()
+    lock2 = generate(p, workers=1, progress=False)
+    err = capsys.readouterr().err
+    assert "the lock is stale" in err and "keeping them" in err
+    for i, st in before.items():
+        now = (rd.data_dir / chunk_name(i)).stat()
+        assert (now.st_ino, now.st_mtime_ns) == (st.st_ino, st.st_mtime_ns)
+    assert lock2["content_hash"] == lock["content_hash"] and _chunk_bytes(rd) == ref_bytes
+    assert json.loads(rd.lock_path.read_text())["outs"][0]["sha256"] == lock["outs"][0]["sha256"]  # rewritten
+    assert not chunk_states(rd)
+
+    # a finished chunk that this code does not make (an older generator, same identity) is regenerated
+    from mpd.data.storage import read_chunk, write_chunk
+
+    arrays = read_chunk(rd.data_dir, 2)
+    arrays["control_points"] = arrays["control_points"] + 1e-3
+    write_chunk(rd.data_dir, 2, arrays, {})
+    assert "differs from the lock" in chunk_states(rd)[2]
+    capsys.readouterr()
+    generate(p, workers=1, progress=False)
+    assert "made by other code" in capsys.readouterr().err
+    assert _chunk_bytes(rd) == ref_bytes
+
+
 def test_resume_after_killing_a_real_run(tmp_path, monkeypatch):
     monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
     env = dict(os.environ, OMP_NUM_THREADS="1")

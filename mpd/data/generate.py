@@ -8,6 +8,7 @@ number of workers: context i is drawn from a stream seeded by (seed, i) and OMPL
 
 from __future__ import annotations
 
+import hashlib
 import json
 import multiprocessing as mp
 import os
@@ -22,6 +23,7 @@ import numpy as np
 
 from mpd.data.definition import GENERATOR_VERSION, ResolvedDefinition, load_definition
 from mpd.data.storage import (
+    chunk_name,
     chunk_record,
     clean_stale_temporaries,
     content_hash,
@@ -35,6 +37,7 @@ from mpd.data.storage import (
     write_chunk_bytes,
 )
 from mpd.provenance import provenance
+from mpd.schema import file_sha256
 
 STATUSES = ("ok", "no_context", "invalid_start", "invalid_goal", "timeout", "post_check")
 POST_CHECK_ATTEMPTS = 3
@@ -216,6 +219,34 @@ def chunk_states(rd: ResolvedDefinition, use_lock: bool = True) -> dict[int, str
     return bad
 
 
+def _keep_if_lock_is_stale(rd: ResolvedDefinition, todo: dict[int, str], say) -> dict[int, str]:
+    """``todo`` less the intact chunks that differ from the committed lock when the lock, not the chunks, is stale.
+
+    An intact chunk (its archive matches its sidecar) can differ from the committed lock for two reasons: it was made
+    by other code than this (regenerate it), or the lock was (a stale lock, or another CPU's arithmetic: keep it,
+    regenerating gives the same bytes again). One of them is regenerated in memory to tell which: when it comes out
+    byte for byte as the cached one, every such chunk is kept and the lock is rewritten when the dataset is complete
+    (with the warning of `generate`); otherwise they are all regenerated, as before.
+    """
+    intact = sorted(set(todo) - set(chunk_states(rd, use_lock=False)))
+    if not intact:
+        return todo
+    i = intact[0]
+    arrays, _ = compute_chunk(rd, i)
+    again = npz_bytes(arrays)
+    if file_sha256(rd.data_dir / chunk_name(i)) != hashlib.sha256(again).hexdigest():
+        say(
+            f"{rd.name}: chunks {intact} differ from the committed lock and chunk {i} regenerates differently: "
+            "they were made by other code; regenerating them"
+        )
+        return todo
+    say(
+        f"{rd.name}: chunks {intact} differ from the committed lock, but chunk {i} regenerates to the same bytes: "
+        "the lock is stale (or was made on a CPU that computes differently); keeping them"
+    )
+    return {k: v for k, v in todo.items() if k not in intact}
+
+
 def default_dataset(task_name: str) -> str:
     """``<task>-paper`` when that dataset is complete in this cache, else ``<task>-cpu`` (the Panda tasks' size for
     CPU-trained priors) when complete, else ``<task>-small``. A committed lock file alone does not count: a fresh
@@ -260,6 +291,7 @@ def generate(
     clean_stale_temporaries(rd.data_dir)
     write_atomic(rd.data_dir / "definition.json", (json.dumps(_definition_record(rd), indent=1) + "\n").encode())
     todo = chunk_states(rd)
+    todo = _keep_if_lock_is_stale(rd, todo, say)
     for i, why in sorted(todo.items()):
         if why != "missing":
             say(f"{rd.name}: {rd.data_dir.name}/chunk-{i:05d}: {why}; regenerating it")
