@@ -369,6 +369,9 @@ def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
         ('"training.precision"', '["fp16"]', "axes.training.precision"),
         ('"training.steps"', "[0]", "axes.training.steps"),
         ('"training.lr"', '["fast"]', "axes.training.lr"),
+        ('"model.unet_dim"', "[0]", "axes.model.unet_dim"),
+        ('"model.unet_dim_mults"', "[[1, 2]]", "axes.model.unet_dim_mults"),
+        ('"model.width"', "[16]", "axes.model.width"),
     ],
 )
 def test_bad_training_axes_name_the_axis(tmp_path, axis, values, where):
@@ -379,9 +382,9 @@ def test_bad_training_axes_name_the_axis(tmp_path, axis, values, where):
 
 
 def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
-    """`training.*` axes: each budget is its own model (wsd: the longer resumes from the shorter's stable phase), the
-    rows carry the model's steps and training time, methods without a model collapse the axes, and the report draws
-    the learning curves and writes the recipe table."""
+    """`training.*` and `model.*` axes: each budget is its own model (wsd: the longer resumes from the shorter's
+    stable phase, of the same network only), the rows carry the model's steps and training time, methods without a
+    model collapse the axes, and the report draws the learning curves and writes the recipe table."""
     from mpd.models.train import list_models
     from mpd.viz.report import build_report
 
@@ -394,29 +397,32 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
         "training.lr_schedule" = ["wsd"]
         "training.precision" = ["bf16"]
         "training.loss_weighting" = ["uniform", "min_snr"]
+        "model.unet_dim" = [8, 16]
         """,
     )
     p.write_text(p.read_text().replace('method = ["gp-cost"]\n', "", 1).replace("extra_objects = [false, true]", ""))
     spec = load_spec(p)
     cells = spec.cells()
     assert len([c for c in cells if c.p["method"] == "gp-cost"]) == 1  # the training axes collapse without a model
-    assert len([c for c in cells if c.p["method"] == "dprior"]) == 4
+    assert len([c for c in cells if c.p["method"] == "dprior"]) == 8
     run_dir = work / "runs" / "curves"
     df = _run(p, run_dir, workers=2)
     dp = df[df["method"] == "dprior"]
-    assert dp.groupby(["training.loss_weighting", "training.steps"])["model_id"].nunique().eq(1).all()
-    assert dp["model_id"].nunique() == 4 and set(dp["model_steps"]) == {20, 40}
+    keys = ["training.loss_weighting", "training.steps", "model.unet_dim"]
+    assert dp.groupby(keys)["model_id"].nunique().eq(1).all()
+    assert dp["model_id"].nunique() == 8 and set(dp["model_steps"]) == {20, 40}
     assert (df.loc[df["method"] == "gp-cost", "model_id"] == "").all()
     metas = {m["identity"]: m for m in list_models(TASK)}
     for ident, g in dp.groupby("model_id"):
         meta = metas[ident]
         assert meta["training_spec"]["precision"] == "bf16" and meta["training_spec"]["lr_schedule"] == "wsd"
+        assert meta["model_spec"]["unet_dim"] == int(g["model.unet_dim"].iloc[0])
         assert float(g["model_train_s"].iloc[0]) == pytest.approx(meta["wall_time_s"])
         # the 40-step budget of each recipe resumed from the 20-step one's stable phase (step 16)
         assert meta.get("resumed_from_trunk_step") == (16 if meta["step"] == 40 else None)
     index = build_report(run_dir, recordings=False)
     text = (index.parent / "training.md").read_text()
-    assert "loss_weighting=min_snr" in text and "loss_weighting=uniform" in text
+    assert "loss_weighting=min_snr" in text and "loss_weighting=uniform" in text and "model.unet_dim=8" in text
     assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000
 
 

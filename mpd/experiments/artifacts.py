@@ -133,8 +133,24 @@ def _model_kinds(cells, task_name: str) -> set[tuple[str, str, tuple]]:
     return out
 
 
+def model_settings(task: Task, overrides: tuple = ()):
+    """The task's network spec with a cell's ``model.*`` values."""
+    from mpd.experiments.spec import MODEL_PREFIX
+
+    mine = {
+        k[len(MODEL_PREFIX) :]: (list(v) if isinstance(v, tuple) else v)
+        for k, v in overrides
+        if k.startswith(MODEL_PREFIX)
+    }
+    return dataclasses.replace(task.spec.model, **mine) if mine else task.spec.model
+
+
 def training_settings(task: Task, ts, overrides: tuple = ()):
-    """The task's training profile of the spec, with the spec's ``train_steps`` and a cell's ``training.*`` values."""
+    """The task's training profile of the spec, with the spec's ``train_steps`` and a cell's ``training.*`` values
+    (its ``model.*`` values are the network's: `model_settings`)."""
+    from mpd.experiments.spec import MODEL_PREFIX
+
+    overrides = tuple((k, v) for k, v in overrides if not k.startswith(MODEL_PREFIX))
     spec = task.training(ts.profile)
     if ts.train_steps is not None:
         spec = dataclasses.replace(
@@ -161,7 +177,9 @@ def _model_identity(task: Task, ts, content_hash: str, kind: str, par: str, trai
     from mpd.trajectory import make_parametrization
 
     settings = make_parametrization(task, par).settings()
-    return model_identity(content_hash, kind, par, settings, task.spec.model, training_settings(task, ts, training), 0)
+    return model_identity(
+        content_hash, kind, par, settings, model_settings(task, training), training_settings(task, ts, training), 0
+    )
 
 
 def _available(task_name: str, kind: str, par: str, ident: str) -> str | None:
@@ -229,7 +247,7 @@ def needs(spec, cells) -> list[Need]:
         for key in keys:
             kind, par, tr = key
             train = training_settings(task, ts, tr)
-            steps_s = _STEPS_PER_S.get(len(task.spec.model.unet_dim_mults), 2.0)
+            steps_s = _STEPS_PER_S.get(len(model_settings(task, tr).unet_dim_mults), 2.0)
             if content is None:
                 out.append(
                     Need(
@@ -320,7 +338,9 @@ def resolve(
         for kind, par, tr in keys:
             if par not in arrays:
                 arrays[par] = training_arrays(task, data, par)
-            jobs.append((task_name, kind, par, arrays[par], task.spec.model, training_settings(task, ts, tr), tr))
+            jobs.append(
+                (task_name, kind, par, arrays[par], model_settings(task, tr), training_settings(task, ts, tr), tr)
+            )
     before = [_in_cache(j) for j in jobs]
     paths = train_models(jobs, workers, progress, executor, address)
     for (task_name, kind, par, *_, tr), path, cached in zip(jobs, paths, before):

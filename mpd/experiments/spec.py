@@ -63,6 +63,9 @@ PLANNER_PREFIX = "planner."
 # any field of the task's training profile is an axis too ("training.steps", "training.lr", ...): each value trains
 # (or finds) its own model, the profile with that field replaced; methods without a model collapse these axes
 TRAINING_PREFIX = "training."
+# any field of the task's network spec is an axis too ("model.unet_dim", ...): each value trains (or finds) its own
+# model with that field replaced (carried with the training overrides of a cell, under its "model." name)
+MODEL_PREFIX = "model."
 
 
 @dataclass(frozen=True)
@@ -115,9 +118,12 @@ class Cell:
         return {k[len(PLANNER_PREFIX) :]: v for k, v in self.params if k.startswith(PLANNER_PREFIX) and v is not None}
 
     def training_overrides(self) -> tuple[tuple[str, Any], ...]:
-        """The training-profile fields this cell replaces, sorted (a hashable key of the cell's model)."""
+        """The training-profile fields this cell replaces, sorted, and its network fields as "model.<field>" (a
+        hashable key of the cell's model)."""
         return tuple(
-            (k[len(TRAINING_PREFIX) :], v) for k, v in self.params if k.startswith(TRAINING_PREFIX) and v is not None
+            (k[len(TRAINING_PREFIX) :] if k.startswith(TRAINING_PREFIX) else k, v)
+            for k, v in self.params
+            if k.startswith((TRAINING_PREFIX, MODEL_PREFIX)) and v is not None
         )
 
     def label(self) -> str:
@@ -185,9 +191,9 @@ class Spec:
             for a in planner.unused_axes:
                 if a in p:
                     p[a] = None
-            if planner.model_kind is None:  # no model: the training axes do not apply
+            if planner.model_kind is None:  # no model: the training and network axes do not apply
                 for a in p:
-                    if a.startswith(TRAINING_PREFIX):
+                    if a.startswith((TRAINING_PREFIX, MODEL_PREFIX)):
                         p[a] = None
             cell = Cell(tuple(sorted(p.items())))
             if cell.params not in seen:
@@ -230,8 +236,13 @@ def _validate(spec: SpecFile, path) -> None:
         if axis.startswith(TRAINING_PREFIX):
             _check_training_axis(axis, values, path)
             continue
+        if axis.startswith(MODEL_PREFIX):
+            _check_model_axis(axis, values, path)
+            continue
         if axis not in AXES:
-            allowed = ", ".join([*AXES, PLANNER_PREFIX + "<setting>", TRAINING_PREFIX + "<field>"])
+            allowed = ", ".join(
+                [*AXES, PLANNER_PREFIX + "<setting>", TRAINING_PREFIX + "<field>", MODEL_PREFIX + "<field>"]
+            )
             raise ConfigError(path, f"axes.{axis}", f"unknown axis (allowed: {allowed})")
         for v in values:
             if axis == "method":
@@ -284,6 +295,20 @@ def _check_training_axis(axis: str, values: list, path) -> None:
             check_training_spec(dataclasses.replace(base, **{name: v}))
         except ValueError as e:
             raise ConfigError(path, f"axes.{axis}", str(e)) from None
+
+
+def _check_model_axis(axis: str, values: list, path) -> None:
+    """A network axis names an integer ModelSpec field (widths and sizes; ``unet_dim_mults``, a list, is not an axis)
+    and each value is a positive integer."""
+    from mpd.tasks.spec import ModelSpec
+
+    name = axis[len(MODEL_PREFIX) :]
+    fields = [f.name for f in dataclasses.fields(ModelSpec) if f.type in (int, "int")]
+    if name not in fields:
+        raise ConfigError(path, f"axes.{axis}", f"unknown network field (allowed: {', '.join(fields)})")
+    for v in values:
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise ConfigError(path, f"axes.{axis}", f"{v!r} is not a positive integer")
 
 
 def _task_file(entry: str, spec_path: Path | None) -> Path:

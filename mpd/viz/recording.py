@@ -285,7 +285,7 @@ def _info_markdown(task, params: Mapping[str, Any], n: int, n_valid: int, best: 
     """The cell in a few lines: its axes (and planner.* settings), the context, the metrics when given."""
     why = "valid, shortest path" if best_valid else "no valid one: the shortest"
     keys = [k for k in _INFO_AXES if k in params] + sorted(
-        k for k in params if str(k).startswith(("planner.", "training."))
+        k for k in params if str(k).startswith(("planner.", "training.", "model."))
     )
     lines = [f"## {task.name}", "", "| parameter | value |", "| --- | --- |"]
     lines += [f"| {k} | {params[k]} |" for k in keys if params[k] not in (None, "")]

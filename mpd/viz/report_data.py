@@ -124,7 +124,7 @@ def main_slice(d: pd.DataFrame, free: tuple[str, ...] = ()) -> tuple[pd.DataFram
     keep = pd.Series(True, index=d.index)
     chosen: dict[str, object] = {}
     axes = [a for a in VARIANT_AXES if a not in free and a in d.columns]
-    axes += sorted(c for c in d.columns if c.startswith(("planner.", "training.")) and c not in free)
+    axes += sorted(c for c in d.columns if c.startswith(("planner.", "training.", "model.")) and c not in free)
     for axis in axes:
         for _, g in d.groupby(["task", "method"], sort=True):
             col = g[axis]

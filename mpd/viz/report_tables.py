@@ -44,7 +44,7 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
 def _varying(d: pd.DataFrame) -> list[str]:
     """Variant axes (and planner.* axes) with more than one value in the run: they become table columns."""
     cols = [a for a in VARIANT_AXES if a in d.columns] + sorted(
-        c for c in d.columns if c.startswith(("planner.", "training."))
+        c for c in d.columns if c.startswith(("planner.", "training.", "model."))
     )
     return [c for c in cols if d[c].astype(str).nunique() > 1]
 

@@ -29,8 +29,8 @@ DIVERSITY = ("vendi", "diversity (Vendi)", 1.0, False)
 
 
 def recipe_columns(d: pd.DataFrame) -> list[str]:
-    """The training columns that vary in the run, ``steps`` excluded (they name the recipes)."""
-    cols = sorted(c for c in d.columns if c.startswith("training.") and c != "training.steps")
+    """The training and network columns that vary in the run, ``steps`` excluded (they name the recipes)."""
+    cols = sorted(c for c in d.columns if c.startswith(("training.", "model.")) and c != "training.steps")
     return [c for c in cols if d[c].astype(str).nunique() > 1]
 
 
@@ -39,7 +39,7 @@ def has_curves(d: pd.DataFrame) -> bool:
 
 
 def recipe_label(row: pd.Series | dict, cols: list[str]) -> str:
-    return ", ".join(f"{c[len('training.') :]}={row[c]}" for c in cols) or "recipe"
+    return ", ".join(f"{c.removeprefix('training.')}={row[c]}" for c in cols) or "recipe"
 
 
 def curve_points(d: pd.DataFrame) -> pd.DataFrame:
