@@ -606,7 +606,8 @@ def test_min_snr_loss_weights_each_sample_by_min_snr_over_snr():
     assert torch.allclose(uniform, err.mean(), rtol=1e-5)
 
 
-def test_bf16_training_is_close_to_fp32_and_has_its_own_identity(tmp_path):
+def test_bf16_training_is_close_to_fp32_and_has_its_own_identity(tmp_path, monkeypatch):
+    monkeypatch.setenv("MPD_BF16", "emulate")  # the bf16 arithmetic on any CPU (emulated where it is not native)
     arrays = toy_arrays(n_val=4)
     fp32 = tiny_training(steps=20)
     bf16 = dataclasses.replace(fp32, precision="bf16")
@@ -617,6 +618,28 @@ def test_bf16_training_is_close_to_fp32_and_has_its_own_identity(tmp_path):
     diffs = [float((a["weights"][k] - b["weights"][k]).abs().max()) for k in a["weights"]]
     assert 0 < max(diffs) < 0.05  # bf16 changes the arithmetic, not the training (lr 1e-3, 20 steps)
     assert abs(a["history"][-1]["train_loss"] - b["history"][-1]["train_loss"]) < 0.1
+
+
+def test_bf16_training_without_native_bf16_runs_in_fp32(tmp_path, monkeypatch, capsys):
+    """On a CPU without bf16 instructions the bf16 setting trains in fp32 (emulated bf16 is ~20x slower): the same
+    weights as an fp32 training, the model's own identity, the arithmetic recorded and said once."""
+    import mpd.device
+
+    monkeypatch.delenv("MPD_BF16", raising=False)
+    monkeypatch.setattr(mpd.device, "native_bf16", lambda device: False)
+    arrays = toy_arrays(n_val=4)
+    fp32 = tiny_training(steps=20)
+    bf16 = dataclasses.replace(fp32, precision="bf16")
+    a = read_checkpoint(train_model(arrays, "diffusion", TINY, fp32, seed=2, progress=False, cache=tmp_path))
+    pb = train_model(arrays, "diffusion", TINY, bf16, seed=2, progress=False, cache=tmp_path)
+    b = read_checkpoint(pb)
+    assert a["identity"] != b["identity"]
+    assert all(torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
+    assert json.loads((pb.parent / "meta.json").read_text())["arithmetic"] == "fp32"
+    assert "no native bf16" in capsys.readouterr().out
+    monkeypatch.setattr(mpd.device, "native_bf16", lambda device: True)
+    assert mpd.device.training_arithmetic("bf16", "cpu") == "bf16"
+    assert mpd.device.training_arithmetic("fp32", "cpu") == "fp32"
 
 
 def test_fields_added_to_the_training_spec_keep_older_identities():

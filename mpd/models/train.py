@@ -29,7 +29,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from mpd.device import default_device, synchronize
+from mpd.device import default_device, synchronize, training_arithmetic
 from mpd.models.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
@@ -399,7 +399,13 @@ def train_model(
         desc=f"{kind} {arrays.task_name}", mininterval=1.0,
     )  # fmt: skip
     loss_kwargs = {"weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma} if kind == "diffusion" else {}
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=ts.precision == "bf16")
+    arithmetic = training_arithmetic(ts.precision, device)
+    if arithmetic != ts.precision:
+        tqdm.write(
+            f"{kind} {arrays.task_name}: precision bf16 trains in fp32 arithmetic here: {device} has no native bf16 "
+            "(AVX512_BF16 / AMX); emulated bf16 is ~20x slower (MPD_BF16=emulate forces it)"
+        )
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=arithmetic == "bf16")
     t0 = time.perf_counter()
     net.train()
     with _deferred_sigint() as interrupted:
@@ -467,6 +473,7 @@ def train_model(
         n_parameters=sum(p.numel() for p in net.parameters()),
         device=str(device),
         cpu=cpu_model(),
+        arithmetic=arithmetic,
         source="trained",
         steps=step,
         steps_per_s=(step - first_step) / elapsed if elapsed > 0 else None,

@@ -181,8 +181,11 @@ class TrainingSpec:
     loss_weighting: Literal["uniform", "min_snr"] = "uniform"
     min_snr_gamma: float = 5.0
     # arithmetic of the training forward and backward passes: "fp32", or "bf16" autocast (weights, optimizer, EMA and
-    # the validation loss stay float32). bf16 runs on any CPU; it is faster where the CPU has bf16 instructions
-    # (AVX-512 BF16, AMX) or on a GPU, and the same setting gives the same model identity everywhere.
+    # the validation loss stay float32) where the device computes bf16 natively (AVX-512 BF16, AMX, a GPU); on a CPU
+    # without (e.g. AVX2 only) a bf16 training runs in fp32 arithmetic, because emulated bf16 is ~20x slower
+    # (mpd.device.training_arithmetic; the model's meta records "arithmetic"). The same setting gives the same model
+    # identity everywhere: bit-identical on the same CPU type, statistically equivalent elsewhere (bf16 and fp32
+    # trainings of equal steps sample alike: reports/recipe-study-2d).
     precision: Literal["fp32", "bf16"] = "fp32"
 
 
