@@ -38,7 +38,7 @@ def native_bf16(device: torch.device | str) -> bool:
 def training_arithmetic(precision: str, device: torch.device | str) -> str:
     """The arithmetic a training of ``precision`` runs in on ``device``: bf16 autocast where the device has native
     bf16 arithmetic, fp32 elsewhere (without AVX512_BF16 / AMX, oneDNN emulates bf16 and a training step of the
-    profiles' networks is ~20x slower: measured on an AMD EPYC Zen 3, AVX2). ``MPD_BF16=emulate`` forces bf16 there
+    profiles' networks is ~30x slower: measured on an AMD EPYC Zen 3, AVX2). ``MPD_BF16=emulate`` forces bf16 there
     (for tests of the bf16 path on any CPU)."""
     if precision != "bf16":
         return "fp32"

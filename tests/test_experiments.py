@@ -405,6 +405,12 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     cells = spec.cells()
     assert len([c for c in cells if c.p["method"] == "gp-cost"]) == 1  # the training axes collapse without a model
     assert len([c for c in cells if c.p["method"] == "dprior"]) == 8
+    only = ["--only", "training.steps=20", "--only", "model.unet_dim=8", "--only", "method=dprior"]
+    r = subprocess.run(
+        [sys.executable, "-m", "mpd.cli", "run", str(p), "--dry-run", *only], capture_output=True, text=True
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.count("method=dprior") == 2  # the two loss weightings of the 20-step, width-8 models
     run_dir = work / "runs" / "curves"
     df = _run(p, run_dir, workers=2)
     dp = df[df["method"] == "dprior"]

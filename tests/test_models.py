@@ -621,7 +621,7 @@ def test_bf16_training_is_close_to_fp32_and_has_its_own_identity(tmp_path, monke
 
 
 def test_bf16_training_without_native_bf16_runs_in_fp32(tmp_path, monkeypatch, capsys):
-    """On a CPU without bf16 instructions the bf16 setting trains in fp32 (emulated bf16 is ~20x slower): the same
+    """On a CPU without bf16 instructions the bf16 setting trains in fp32 (emulated bf16 is ~30x slower): the same
     weights as an fp32 training, the model's own identity, the arithmetic recorded and said once."""
     import mpd.device
 

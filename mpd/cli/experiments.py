@@ -74,11 +74,15 @@ def run(
     if scale is not None:
         s = scale_spec(s, scale)
     only_d = _parse_only(only, str(s.path))
-    from mpd.experiments.spec import AXES, PLANNER_PREFIX
+    from mpd.experiments.spec import AXES, MODEL_PREFIX, PLANNER_PREFIX, TRAINING_PREFIX
 
     for k in only_d:
-        if k not in AXES and not k.startswith(PLANNER_PREFIX):
-            raise ConfigError("--only", k, f"unknown axis (allowed: {', '.join(AXES)}, planner.<setting>)")
+        if k not in AXES and not k.startswith((PLANNER_PREFIX, TRAINING_PREFIX, MODEL_PREFIX)):
+            raise ConfigError(
+                "--only",
+                k,
+                f"unknown axis (allowed: {', '.join(AXES)}, planner.<setting>, training.<field>, model.<field>)",
+            )
     if "task" in only_d:  # a task given by its path selects the cells of its name
         only_d["task"] = [s.task_name(str(t)) for t in only_d["task"]]
     if threads is not None:

@@ -403,7 +403,7 @@ def train_model(
     if arithmetic != ts.precision:
         tqdm.write(
             f"{kind} {arrays.task_name}: precision bf16 trains in fp32 arithmetic here: {device} has no native bf16 "
-            "(AVX512_BF16 / AMX); emulated bf16 is ~20x slower (MPD_BF16=emulate forces it)"
+            "(AVX512_BF16 / AMX); emulated bf16 is ~30x slower (MPD_BF16=emulate forces it)"
         )
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=arithmetic == "bf16")
     t0 = time.perf_counter()

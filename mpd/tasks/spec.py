@@ -182,7 +182,7 @@ class TrainingSpec:
     min_snr_gamma: float = 5.0
     # arithmetic of the training forward and backward passes: "fp32", or "bf16" autocast (weights, optimizer, EMA and
     # the validation loss stay float32) where the device computes bf16 natively (AVX-512 BF16, AMX, a GPU); on a CPU
-    # without (e.g. AVX2 only) a bf16 training runs in fp32 arithmetic, because emulated bf16 is ~20x slower
+    # without (e.g. AVX2 only) a bf16 training runs in fp32 arithmetic, because emulated bf16 is ~30x slower
     # (mpd.device.training_arithmetic; the model's meta records "arithmetic"). The same setting gives the same model
     # identity everywhere: bit-identical on the same CPU type, statistically equivalent elsewhere (bf16 and fp32
     # trainings of equal steps sample alike: reports/recipe-study-2d).
