@@ -429,6 +429,13 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     index = build_report(run_dir, recordings=False)
     text = (index.parent / "training.md").read_text()
     assert "loss_weighting=min_snr" in text and "loss_weighting=uniform" in text and "model.unet_dim=8" in text
+    # the training and network axes name cells when runs are compared and summarised (they were merged before)
+    from mpd.experiments.reproduce import compare
+    from mpd.experiments.tracking import cell_summary
+
+    comp = compare(run_dir, run_dir)
+    assert len(comp.cells) == 9 and (comp.cells["level"] == "bit-identical").all()
+    assert len(cell_summary(df)) == 9
     assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000
 
 

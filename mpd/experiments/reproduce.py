@@ -24,7 +24,7 @@ import pandas as pd
 
 from mpd import stats
 from mpd.experiments.results import read_results
-from mpd.experiments.tracking import CELL_COLUMNS, SUMMARY_METRICS, _key
+from mpd.experiments.tracking import SUMMARY_METRICS, _key, cell_columns
 
 # per-context metrics compared (not the times: they depend on the machine and its load)
 COMPARED = (*(m for m in SUMMARY_METRICS if not m.startswith("time_")), "best_path_length")
@@ -103,7 +103,7 @@ def compare(run_a: Path, run_b: Path, tol: float = 0.0, alpha: float = stats.ALP
     a, b = read_results(run_a), read_results(run_b)
     if a.empty or b.empty:
         raise FileNotFoundError(f"{run_a if a.empty else run_b}: no results")
-    keys = [c for c in CELL_COLUMNS if c in a.columns and c in b.columns]
+    keys = [c for c in cell_columns(a) if c in set(cell_columns(b))]
     for df in (a, b):
         df["_cell"] = list(zip(*[df[k].map(_key) for k in keys]))
     ga_all, gb_all = dict(tuple(a.groupby("_cell", sort=False))), dict(tuple(b.groupby("_cell", sort=False)))

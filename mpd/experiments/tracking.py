@@ -61,6 +61,14 @@ def list_runs() -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+AXIS_PREFIXES = ("planner.", "training.", "model.")
+
+
+def cell_columns(df: pd.DataFrame) -> list[str]:
+    """The columns that name a cell: CELL_COLUMNS and the spec's planner.* / training.* / model.* axes."""
+    return [c for c in CELL_COLUMNS if c in df.columns] + sorted(c for c in df.columns if c.startswith(AXIS_PREFIXES))
+
+
 def _key(v) -> str:
     """A cell parameter as text; missing values (None/NaN: an axis a method does not use) as ''."""
     return "" if v is None or (isinstance(v, float) and math.isnan(v)) or v is pd.NA else str(v)
@@ -68,7 +76,7 @@ def _key(v) -> str:
 
 def cell_summary(df: pd.DataFrame) -> pd.DataFrame:
     """Mean of the summary metrics per cell (over contexts)."""
-    cols = [c for c in CELL_COLUMNS if c in df.columns]
+    cols = cell_columns(df)
     mets = [m for m in SUMMARY_METRICS if m in df.columns]
     g = df.copy()
     for c in cols:
