@@ -228,7 +228,7 @@ def _keep_if_lock_is_stale(rd: ResolvedDefinition, todo: dict[int, str], say) ->
     byte for byte as the cached one, every such chunk is kept and the lock is rewritten when the dataset is complete
     (with the warning of `generate`); otherwise they are all regenerated, as before.
     """
-    intact = sorted(set(todo) - set(chunk_states(rd, use_lock=False)))
+    intact = sorted(i for i, why in todo.items() if why != "missing" and verify_chunk(rd.data_dir, i)[0])
     if not intact:
         return todo
     i = intact[0]

@@ -137,11 +137,7 @@ def model_settings(task: Task, overrides: tuple = ()):
     """The task's network spec with a cell's ``model.*`` values."""
     from mpd.experiments.spec import MODEL_PREFIX
 
-    mine = {
-        k[len(MODEL_PREFIX) :]: (list(v) if isinstance(v, tuple) else v)
-        for k, v in overrides
-        if k.startswith(MODEL_PREFIX)
-    }
+    mine = {k[len(MODEL_PREFIX) :]: v for k, v in overrides if k.startswith(MODEL_PREFIX)}
     return dataclasses.replace(task.spec.model, **mine) if mine else task.spec.model
 
 

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mpd.experiments.tracking import CELL_COLUMNS
+from mpd.experiments.tracking import AXIS_PREFIXES, CELL_COLUMNS
 from mpd.viz.scene import EXTRA, GOAL, INVALID, OBSTACLE, ROBOT, START, VALID
 
 TIME = "time"
@@ -284,9 +284,7 @@ _INFO_METRICS = ("success", "fraction_valid", "vendi", "ee_pos_error", "ee_ori_e
 def _info_markdown(task, params: Mapping[str, Any], n: int, n_valid: int, best: int, best_valid: bool) -> str:
     """The cell in a few lines: its axes (and planner.* settings), the context, the metrics when given."""
     why = "valid, shortest path" if best_valid else "no valid one: the shortest"
-    keys = [k for k in _INFO_AXES if k in params] + sorted(
-        k for k in params if str(k).startswith(("planner.", "training.", "model."))
-    )
+    keys = [k for k in _INFO_AXES if k in params] + sorted(k for k in params if str(k).startswith(AXIS_PREFIXES))
     lines = [f"## {task.name}", "", "| parameter | value |", "| --- | --- |"]
     lines += [f"| {k} | {params[k]} |" for k in keys if params[k] not in (None, "")]
     mets = [k for k in _INFO_METRICS if isinstance(params.get(k), int | float)]

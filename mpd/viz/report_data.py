@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from mpd import stats
+from mpd.experiments.tracking import AXIS_PREFIXES
 
 TRAIN, EXTRA = "training environment", "extra objects"
 # the axes of a cell besides task, method and scene; a figure that compares methods keeps one value of each
@@ -124,7 +125,7 @@ def main_slice(d: pd.DataFrame, free: tuple[str, ...] = ()) -> tuple[pd.DataFram
     keep = pd.Series(True, index=d.index)
     chosen: dict[str, object] = {}
     axes = [a for a in VARIANT_AXES if a not in free and a in d.columns]
-    axes += sorted(c for c in d.columns if c.startswith(("planner.", "training.", "model.")) and c not in free)
+    axes += sorted(c for c in d.columns if c.startswith(AXIS_PREFIXES) and c not in free)
     for axis in axes:
         for _, g in d.groupby(["task", "method"], sort=True):
             col = g[axis]

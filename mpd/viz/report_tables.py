@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mpd.experiments.tracking import AXIS_PREFIXES
 from mpd.viz.report_data import (
     BINARY,
     EXTRA,
@@ -43,9 +44,7 @@ def markdown_table(header: list[str], rows: list[list[str]], align: list[str] | 
 
 def _varying(d: pd.DataFrame) -> list[str]:
     """Variant axes (and planner.* axes) with more than one value in the run: they become table columns."""
-    cols = [a for a in VARIANT_AXES if a in d.columns] + sorted(
-        c for c in d.columns if c.startswith(("planner.", "training.", "model."))
-    )
+    cols = [a for a in VARIANT_AXES if a in d.columns] + sorted(c for c in d.columns if c.startswith(AXIS_PREFIXES))
     return [c for c in cols if d[c].astype(str).nunique() > 1]
 
 
