@@ -606,6 +606,42 @@ def test_min_snr_loss_weights_each_sample_by_min_snr_over_snr():
     assert torch.allclose(uniform, err.mean(), rtol=1e-5)
 
 
+def test_sampler_grid_is_the_ddim_runs_distinct_steps():
+    from mpd.models.diffusion import ddim_timesteps, sampler_grid
+
+    grid = sampler_grid()
+    assert grid.tolist() == [0, 1, 2, 4, 7, 11, 16, 22, 29, 37, 45, 55, 66, 77, 90]
+    for variant in ("paper", "official"):  # every fixed step of either variant is on it (official: + 1 random step)
+        steps = {t for t, _ in ddim_timesteps(15, "quadratic", variant=variant, generator=torch.Generator())}
+        assert len(steps - set(grid.tolist())) <= (1 if variant == "official" else 0)
+
+
+def test_sampler_t_sampling_draws_grid_steps_with_the_given_probability():
+    """The steps the loss uses, recovered from its forward calls: with p = 0.8 about 80 % + 20 % x 15/100 of them are
+    on the grid (a binomial bound), every step of the grid is drawn, and p = 0 is the uniform loss of the same seed."""
+    from mpd.models.diffusion import sampler_grid
+
+    torch.manual_seed(0)
+    net = DiffusionModel(2, 8, "goal_joint_position", TINY)
+    seen = []
+    net.unet.register_forward_pre_hook(lambda m, args: seen.append(torch.as_tensor(args[1]).clone()))
+    x0 = torch.rand(4000, 8, 2) * 2 - 1
+    ctx = {"q_start": torch.rand(4000, 2), "q_goal": torch.rand(4000, 2)}
+    grid = sampler_grid()
+    with torch.no_grad():
+        net.loss(x0, ctx, torch.Generator().manual_seed(3), t_grid=grid, t_grid_fraction=0.8)
+        t = seen[-1]
+        on_grid = torch.isin(t, grid).float().mean().item()
+        expected = 0.8 + 0.2 * len(grid) / 100
+        assert abs(on_grid - expected) < 4 * (expected * (1 - expected) / 4000) ** 0.5
+        assert set(t.tolist()) >= set(grid.tolist()) and len(set(t.tolist())) > 60  # the uniform part too
+        a = net.loss(x0, ctx, torch.Generator().manual_seed(3), t_grid=grid, t_grid_fraction=0.0)
+        b = net.loss(x0, ctx, torch.Generator().manual_seed(3))
+        assert torch.equal(a, b)
+        net.loss(x0, ctx, torch.Generator().manual_seed(3), t_grid=grid, t_grid_fraction=1.0)
+        assert torch.isin(seen[-1], grid).all()
+
+
 def test_bf16_training_is_close_to_fp32_and_has_its_own_identity(tmp_path, monkeypatch):
     monkeypatch.setenv("MPD_BF16", "emulate")  # the bf16 arithmetic on any CPU (emulated where it is not native)
     arrays = toy_arrays(n_val=4)
@@ -652,13 +688,22 @@ def test_fields_added_to_the_training_spec_keep_older_identities():
     old_form = {k: v for k, v in to_dict(ts).items() if k not in LATER_TRAINING_FIELDS}
     expected = stable_hash("h", "diffusion", "bspline", {}, TINY, old_form, 0, {"network_version": NETWORK_VERSION})
     assert model_identity("h", "diffusion", "bspline", {}, TINY, ts, 0) == expected
-    for change in ({"precision": "bf16"}, {"loss_weighting": "min_snr"}, {"decay_fraction": 0.1}):
+    for change in (
+        {"precision": "bf16"},
+        {"loss_weighting": "min_snr"},
+        {"decay_fraction": 0.1},
+        {"t_sampling": "sampler"},
+    ):
         assert model_identity("h", "diffusion", "bspline", {}, TINY, dataclasses.replace(ts, **change), 0) != expected
 
 
 @pytest.mark.parametrize(
-    "field, value", [("lr_schedule", "linear"), ("decay_fraction", 1.5), ("precision", "fp16"), ("min_snr_gamma", 0)]
-)
+    "field, value",
+    [
+        ("lr_schedule", "linear"), ("decay_fraction", 1.5), ("precision", "fp16"), ("min_snr_gamma", 0),
+        ("t_sampling", "grid"), ("t_grid_fraction", 1.5),
+    ],
+)  # fmt: skip
 def test_bad_training_values_are_named(field, value, tmp_path):
     with pytest.raises(ValueError, match=f"training.{field}"):
         train_model(toy_arrays(), "diffusion", TINY, tiny_training(**{field: value}), progress=False, cache=tmp_path)

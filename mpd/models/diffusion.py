@@ -203,6 +203,15 @@ def ddim_step(
     return x_next
 
 
+def sampler_grid(
+    n_steps: int = 15, schedule: StepSchedule = "quadratic", n_train: int = N_DIFFUSION_STEPS
+) -> torch.Tensor:
+    """The distinct steps a DDIM run of ``n_steps`` visits: the ``paper`` variant's (quadratic/15: 0, 1, 2, 4, 7, ...,
+    77, 90), which hold all of the ``official`` variant's fixed steps (it adds one random step per call)."""
+    pairs = ddim_timesteps(n_steps, schedule, n_train, "paper")
+    return torch.tensor(sorted(t for t, _ in pairs), dtype=torch.long)
+
+
 def ddim_timesteps(
     n_steps: int,
     schedule: StepSchedule = "quadratic",
@@ -316,13 +325,25 @@ class DiffusionModel(nn.Module):
         generator: torch.Generator | None = None,
         weighting: Literal["uniform", "min_snr"] = "uniform",
         min_snr_gamma: float = 5.0,
+        t_grid: torch.Tensor | None = None,
+        t_grid_fraction: float = 0.0,
     ) -> torch.Tensor:
         """MSE between the true and the predicted noise, t ~ U{0..N-1}; with ``weighting="min_snr"`` each sample's
         squared error is weighted by ``min(SNR_t, gamma) / SNR_t``, SNR_t = abar_t / (1 - abar_t) (Hang et al.
-        2023, the epsilon form). The random draws are the same for both weightings."""
+        2023, the epsilon form). The random draws are the same for both weightings.
+
+        ``t_grid`` (steps, e.g. :func:`sampler_grid`) with ``t_grid_fraction`` = p: each sample's step is drawn
+        uniformly from the grid with probability p, else from U{0..N-1}, i.e. t ~ p U(grid) + (1 - p) U{0..N-1}:
+        a short training spends its samples on the levels the sampler visits. The uniform draws come first, so
+        the uniform part's stream is the one of a plain run; the grid adds two draws after the noise."""
         b = x0.shape[0]
         t = randint(self.n_diffusion_steps, (b,), generator, x0.device)
         noise = randn(tuple(x0.shape), generator, x0.device, x0.dtype)
+        if t_grid is not None and t_grid_fraction > 0:
+            grid = t_grid.to(x0.device)
+            pick = grid[randint(len(grid), (b,), generator, x0.device)]
+            u = torch.rand((b,), generator=generator, device=generator.device if generator is not None else "cpu")
+            t = torch.where(u.to(x0.device) < t_grid_fraction, pick, t)
         pred = self(q_sample(x0, t, noise, self.schedule), t, context)
         if weighting == "uniform":
             return F.mse_loss(pred.float(), noise)

@@ -44,6 +44,7 @@ from mpd.models.checkpoint import (
 )
 from mpd.models.context import UNNORMALIZED_KEYS
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
+from mpd.models.diffusion import sampler_grid
 from mpd.models.normalizer import Normalizer
 from mpd.paths import cache_dir
 from mpd.provenance import cpu_model, provenance
@@ -59,7 +60,9 @@ NETWORK_VERSION = 2
 
 # TrainingSpec fields added after NETWORK_VERSION 2: they enter a model's identity only when they differ from their
 # defaults, so that the models trained before they existed keep their identity (and their cache folder)
-LATER_TRAINING_FIELDS = ("decay_fraction", "loss_weighting", "min_snr_gamma", "precision")
+LATER_TRAINING_FIELDS = (
+    "decay_fraction", "loss_weighting", "min_snr_gamma", "precision", "t_sampling", "t_grid_fraction",
+)  # fmt: skip
 
 
 def training_identity(ts: TrainingSpec) -> dict[str, Any]:
@@ -270,6 +273,8 @@ def check_training_spec(ts: TrainingSpec) -> None:
         "decay_fraction": 0.0 <= ts.decay_fraction <= 1.0,
         "loss_weighting": ts.loss_weighting in ("uniform", "min_snr"),
         "min_snr_gamma": ts.min_snr_gamma > 0,
+        "t_sampling": ts.t_sampling in ("uniform", "sampler"),
+        "t_grid_fraction": 0.0 <= ts.t_grid_fraction <= 1.0,
         "precision": ts.precision in ("fp32", "bf16"),
         "lr_min_ratio": 0.0 <= ts.lr_min_ratio <= 1.0,
         "ema_decay": 0.0 <= ts.ema_decay < 1.0,
@@ -398,7 +403,11 @@ def train_model(
         total=ts.steps, initial=step, unit="step", disable=not progress, dynamic_ncols=True,
         desc=f"{kind} {arrays.task_name}", mininterval=1.0,
     )  # fmt: skip
-    loss_kwargs = {"weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma} if kind == "diffusion" else {}
+    loss_kwargs = {}
+    if kind == "diffusion":
+        loss_kwargs = {"weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma}
+        if ts.t_sampling == "sampler":
+            loss_kwargs.update(t_grid=sampler_grid().to(device), t_grid_fraction=ts.t_grid_fraction)
     arithmetic = training_arithmetic(ts.precision, device)
     if arithmetic != ts.precision:
         tqdm.write(

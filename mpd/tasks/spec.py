@@ -180,6 +180,11 @@ class TrainingSpec:
     # w_t = min(SNR_t, min_snr_gamma) / SNR_t for the epsilon loss, which stops the nearly clean levels dominating)
     loss_weighting: Literal["uniform", "min_snr"] = "uniform"
     min_snr_gamma: float = 5.0
+    # diffusion steps the training draws: "uniform" over 0..N-1 (the paper), or "sampler": with probability
+    # t_grid_fraction a step of the 15-step quadratic DDIM grid the planners sample on (mpd.models.diffusion.
+    # sampler_grid), else uniform; a short CPU training then spends most of its samples on the levels it is used at
+    t_sampling: Literal["uniform", "sampler"] = "uniform"
+    t_grid_fraction: float = 0.8
     # arithmetic of the training forward and backward passes: "fp32", or "bf16" autocast (weights, optimizer, EMA and
     # the validation loss stay float32) where the device computes bf16 natively (AVX-512 BF16, AMX, a GPU); on a CPU
     # without (e.g. AVX2 only) a bf16 training runs in fp32 arithmetic, because emulated bf16 is ~30x slower
