@@ -439,6 +439,27 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000
 
 
+def test_training_chains_join_the_budgets_of_one_recipe_and_one_network_only():
+    """The wsd budgets of one recipe train in one worker (the longer resumes from the shorter's stable phase); two
+    networks or two recipes are separate chains that train in parallel (two widths were once one serial chain)."""
+    from mpd.experiments.artifacts import _chain_key, model_settings, training_settings
+    from mpd.experiments.spec import TaskSettings
+    from mpd.tasks import load_task
+
+    task = load_task(TASK)
+    ts = TaskSettings(dataset="EnvSimple2D-RobotPointMass2D-paper", profile="cpu")
+
+    def job(**over):
+        over = tuple(sorted(over.items()))
+        return (TASK, "diffusion", "bspline", None, model_settings(task, over), training_settings(task, ts, over), over)
+
+    short, long = job(steps=3000), job(steps=6000)
+    assert _chain_key(short) == _chain_key(long)
+    assert _chain_key(short) != _chain_key(job(**{"steps": 3000, "model.unet_dim": 16}))
+    assert _chain_key(short) != _chain_key(job(steps=3000, lr=2e-3))
+    assert _chain_key(job(lr_schedule="cosine")) != _chain_key(job(lr_schedule="cosine"))
+
+
 # ------------------------------------------------------------------------------------- shipped evaluation inputs
 def test_shipped_priors_and_digest_evaluate_without_generating_the_dataset(work, tmp_path, monkeypatch, capfd):
     """A fresh cache with the dataset's digest and its model shipped: the run generates no dataset and trains

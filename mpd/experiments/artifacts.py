@@ -382,13 +382,14 @@ def _train_chain(chain: list, progress: bool, threads: int | None) -> list[Path]
 
 
 def _chain_key(job) -> tuple:
-    """Jobs of one key train one after the other in one process: the wsd budgets of one recipe (shortest first, each
-    resuming from the stable phase of the one before); every other job is a chain of its own."""
-    task_name, kind, par, _, _, ts, _ = job
+    """Jobs of one key train one after the other in one process: the wsd budgets of one recipe and one network
+    (shortest first, each resuming from the stable phase of the one before); every other job is a chain of its own.
+    The network's settings are part of the key: two widths share no trunk, so they train in parallel."""
+    task_name, kind, par, _, model_spec, ts, _ = job
     if ts.lr_schedule != "wsd":
         return (id(job),)
     rest = {k: v for k, v in dataclasses.asdict(ts).items() if k not in ("steps", "decay_fraction")}
-    return (task_name, kind, par, repr(sorted(rest.items())))
+    return (task_name, kind, par, repr(model_spec), repr(sorted(rest.items())))
 
 
 def train_models(
