@@ -401,7 +401,7 @@ def train_model(
     last_train = last_val = float("nan")
     bar = tqdm(
         total=ts.steps, initial=step, unit="step", disable=not progress, dynamic_ncols=True,
-        desc=f"{kind} {arrays.task_name}", mininterval=1.0,
+        desc=f"{kind}-{arrays.parametrization} {arrays.task_name} [{identity[:8]}]", mininterval=1.0,
     )  # fmt: skip
     loss_kwargs = {}
     if kind == "diffusion":
