@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -129,6 +130,27 @@ BAD = [
         "unknown robot",
     ),
     ("bad literal", 'kind = "goal_joint_position"', 'kind = "goal_joint"', "context.kind", "is not one of"),
+    (
+        "network of no profile",
+        "[training.cpu]",
+        "[model_profiles.laptop]\nunet_dim = 16\n\n[training.cpu]",
+        "model_profiles.laptop",
+        "no training profile 'laptop'",
+    ),
+    (
+        "network size zero",
+        "[training.cpu]",
+        "[model_profiles.cpu]\nunet_dim_mults = [1, 0]\n\n[training.cpu]",
+        "model_profiles.cpu.unet_dim_mults",
+        "must be positive",
+    ),
+    (
+        "network typo",
+        "[training.cpu]",
+        "[model_profiles.cpu]\nunet_dims = 16\n\n[training.cpu]",
+        "model_profiles.cpu.unet_dims",
+        "unknown key",
+    ),
 ]
 
 
@@ -233,3 +255,18 @@ def test_rotated_scene_is_the_scene_rotated(name, extra):
         torch.testing.assert_close(d1, d0, rtol=0, atol=1e-12)
         torch.testing.assert_close(g1, g0 @ R.T, rtol=0, atol=1e-9)
     assert np.isclose(t.env(extra, 30.0).rotation_deg, 30.0)
+
+
+def test_a_profile_network_changes_only_its_fields_and_only_its_models(tmp_path):
+    """``[model_profiles.cpu]``: the cpu profile's network is [model] with the given sizes; other profiles and a task
+    without the table keep [model] (and so their models' identities)."""
+    from mpd.experiments.artifacts import model_settings
+
+    base = load_task(SIMPLE)
+    p = _variant(tmp_path, "[training.cpu]", "[model_profiles.cpu]\nunet_dim = 16\ncontext_dim = 8\n\n[training.cpu]")
+    t = load_task(p)
+    assert t.model("cpu") == dataclasses.replace(base.spec.model, unet_dim=16, context_dim=8)
+    assert t.model("paper") == t.model() == base.spec.model == base.model("cpu")
+    # a spec's model.* value applies on top of the profile's network
+    got = model_settings(t, (("model.unet_dim", 24),), "cpu")
+    assert (got.unet_dim, got.context_dim, got.unet_dim_mults) == (24, 8, base.spec.model.unet_dim_mults)

@@ -55,7 +55,7 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
     ds = load_dataset(name)
     arrays = training_arrays(task, ds, parametrization)
     del ds  # the training arrays hold what training needs; a paper-size dataset's control points are ~2 GB
-    path = train_model(arrays, kind, task.spec.model, spec, seed=seed, device=device, shipped=not no_shipped)
+    path = train_model(arrays, kind, task.model(profile), spec, seed=seed, device=device, shipped=not no_shipped)
     click.echo(f"model: {path}")
     if mlflow:
         from mpd.experiments.tracking import log_model_to_mlflow

@@ -141,7 +141,8 @@ _TASK_HEADER = """\
 #   [environment]        workspace, obstacles ([[environment.obstacles]]: type "sphere" with centre and radius, or
 #                        "box" with centre and size) and the extra objects of the unseen scene
 #   [robot].name         the robot (RobotPointMass2D, RobotPlanar2Link, RobotPlanar4Link, RobotPanda)
-#   [trajectory]         duration, control points; [costs.weights]; [training.<profile>] (steps, batch size)
+#   [trajectory]         duration, control points; [costs.weights]; [training.<profile>] (steps, batch size);
+#                        [model] the network's sizes, [model_profiles.<profile>] a profile's changes to them
 # Check it:  mpd tasks check {file}     Draw it:  mpd tasks show {file} --out {name}.png
 # The name below is the task's identity in every result, figure and recording: keep it unique.
 """

@@ -133,12 +133,14 @@ def _model_kinds(cells, task_name: str) -> set[tuple[str, str, tuple]]:
     return out
 
 
-def model_settings(task: Task, overrides: tuple = ()):
-    """The task's network spec with a cell's ``model.*`` values."""
+def model_settings(task: Task, overrides: tuple = (), profile: str | None = None):
+    """The network of the task's training ``profile`` (its ``[model]`` with the profile's changes) with a cell's
+    ``model.*`` values."""
     from mpd.experiments.spec import MODEL_PREFIX
 
+    base = task.model(profile)
     mine = {k[len(MODEL_PREFIX) :]: v for k, v in overrides if k.startswith(MODEL_PREFIX)}
-    return dataclasses.replace(task.spec.model, **mine) if mine else task.spec.model
+    return dataclasses.replace(base, **mine) if mine else base
 
 
 def training_settings(task: Task, ts, overrides: tuple = ()):
@@ -174,7 +176,13 @@ def _model_identity(task: Task, ts, content_hash: str, kind: str, par: str, trai
 
     settings = make_parametrization(task, par).settings()
     return model_identity(
-        content_hash, kind, par, settings, model_settings(task, training), training_settings(task, ts, training), 0
+        content_hash,
+        kind,
+        par,
+        settings,
+        model_settings(task, training, ts.profile),
+        training_settings(task, ts, training),
+        0,
     )
 
 
@@ -243,7 +251,7 @@ def needs(spec, cells) -> list[Need]:
         for key in keys:
             kind, par, tr = key
             train = training_settings(task, ts, tr)
-            steps_s = _STEPS_PER_S.get(len(model_settings(task, tr).unet_dim_mults), 2.0)
+            steps_s = _STEPS_PER_S.get(len(model_settings(task, tr, ts.profile).unet_dim_mults), 2.0)
             if content is None:
                 out.append(
                     Need(
@@ -335,7 +343,15 @@ def resolve(
             if par not in arrays:
                 arrays[par] = training_arrays(task, data, par)
             jobs.append(
-                (task_name, kind, par, arrays[par], model_settings(task, tr), training_settings(task, ts, tr), tr)
+                (
+                    task_name,
+                    kind,
+                    par,
+                    arrays[par],
+                    model_settings(task, tr, ts.profile),
+                    training_settings(task, ts, tr),
+                    tr,
+                )
             )
     before = [_in_cache(j) for j in jobs]
     paths = train_models(jobs, workers, progress, executor, address)

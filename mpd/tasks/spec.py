@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass, field
 from typing import Literal
@@ -156,6 +157,23 @@ class ModelSpec:
 
 
 @dataclass(frozen=True)
+class ModelOverride:
+    """The network of a training profile where it differs from the task's ``[model]`` (the paper's sizes): only the
+    fields given change, e.g. ``[model_profiles.cpu] unet_dim = 16`` (a network that trains within a CPU budget and
+    ships under the size limit of the shipped priors). A model's identity is its resolved ModelSpec: a profile
+    without an override keeps its models' identities."""
+
+    unet_dim: int | None = None
+    unet_dim_mults: list[int] | None = None
+    context_dim: int | None = None
+    context_layers: int | None = None
+    time_emb_dim: int | None = None
+
+    def changes(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
+
+
+@dataclass(frozen=True)
 class TrainingSpec:
     batch_size: int
     steps: int
@@ -214,6 +232,8 @@ class TaskSpec:
     inference: InferenceSpec = field(default_factory=InferenceSpec)
     model: ModelSpec = field(default_factory=ModelSpec)
     training: dict[str, TrainingSpec] = field(default_factory=dict)
+    # per training profile, the network's sizes where they differ from [model] (Task.model(profile))
+    model_profiles: dict[str, ModelOverride] = field(default_factory=dict)
     data: DataSpec = field(default_factory=DataSpec)
 
     def validate(self) -> None:
@@ -226,3 +246,13 @@ class TaskSpec:
             )
         if self.context.kind == "goal_ee_pose" and self.costs.weights.ee_pose <= 0:
             raise ValueError("costs.weights.ee_pose must be positive for an end-effector-goal task")
+        for profile, override in self.model_profiles.items():
+            where = f"model_profiles.{profile}"
+            if profile not in self.training:
+                have = ", ".join(self.training) or "none"
+                raise ConfigError(None, where, f"no training profile {profile!r} (this task has: {have})")
+            if not override.changes():
+                raise ConfigError(None, where, "empty: give the network sizes that differ from [model]")
+            for name, v in override.changes().items():
+                if any(x < 1 for x in (v if isinstance(v, list) else [v])) or v == []:
+                    raise ConfigError(None, f"{where}.{name}", f"must be positive, got {v!r}")

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 
 from mpd.envs import Environment
 from mpd.robots import Robot, get_robot
 from mpd.schema import ConfigError, file_sha256, from_dict, read_toml
-from mpd.tasks.spec import CostWeights, TaskSpec, TrainingSpec
+from mpd.tasks.spec import CostWeights, ModelSpec, TaskSpec, TrainingSpec
 
 DATA_DIR = Path(__file__).parent / "data"
 
@@ -64,6 +65,12 @@ class Task:
                 raise ConfigError(self.path, "costs.paper_weights", "missing (needed by the 'paper' preset)")
             return self.spec.costs.paper_weights
         raise ValueError(f"unknown cost preset {preset!r} (official, paper)")
+
+    def model(self, profile: str | None = None) -> ModelSpec:
+        """The network of a training profile: the task's ``[model]`` (the paper's sizes) with the profile's
+        ``[model_profiles.<profile>]`` changes, if any."""
+        override = self.spec.model_profiles.get(profile) if profile is not None else None
+        return dataclasses.replace(self.spec.model, **override.changes()) if override else self.spec.model
 
     def training(self, profile: str) -> TrainingSpec:
         if profile not in self.spec.training:
