@@ -301,3 +301,24 @@ def test_report_tables_carry_intervals(tmp_path):
     build_report(run, recordings=False, formats=("png",), dpi=50, reference=ROOT / "reports" / "quick")
     repro = (run / "report" / "reproducibility.md").read_text()
     assert "only in the reference" in repro and "does not reproduce it" in repro
+
+
+def test_recipe_table_shows_the_goal_error_of_end_effector_goal_tasks_only():
+    """On a committed run (reports/priors-cpu: Panda learning curve + the joint-goal planar arm): the EE columns
+    carry the mean over the contexts (cm, deg) for the Panda rows, a dash for the joint-goal task (its samples end
+    on the goal by construction), and a run of joint-goal tasks only has no EE columns."""
+    from mpd.viz.report_training import recipes_table
+
+    root = Path(__file__).parents[1] / "reports"
+    d = pd.read_parquet(root / "priors-cpu" / "results.parquet").assign(scene=TRAIN)
+    lines = recipes_table(d).splitlines()
+    assert lines[0].endswith("| EE pos. error [cm] | EE ori. error [°] |")
+    rows = {(line.split(" | ")[0][2:], line.split(" | ")[3]): line.split(" | ") for line in lines[2:]}
+    planar = rows[("Planar2Link / Planar2Link", "24000")]
+    assert planar[-2:] == ["–", "– |"]
+    g = d[(d["task"] == SPHERES) & (d["model_steps"] == 4000)]
+    panda = rows[("Spheres3D / Panda", "4000")]
+    assert panda[-2].startswith(f"{100 * g['ee_pos_error'].mean():.1f} [")
+    assert panda[-1].startswith(f"{g['ee_ori_error_deg'].mean():.1f} [")
+    d2 = pd.read_parquet(root / "recipe-study-2d" / "results.parquet").assign(scene=TRAIN)
+    assert "EE pos." not in recipes_table(d2)

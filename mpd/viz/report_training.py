@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from mpd.stats import Estimate
 from mpd.viz.report_data import TRAIN, fmt_estimate, interval, method_label, short_task, task_order
 from mpd.viz.report_style import plain_log_ticks
 from mpd.viz.scene import style
@@ -26,6 +27,12 @@ TRAINING_NOTE = (
 RECIPE_COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000")
 METRICS = (("success", "success [%]", 100.0, True), ("fraction_valid", "fraction valid [%]", 100.0, False))
 DIVERSITY = ("vendi", "diversity (Vendi)", 1.0, False)
+# the goal precision of an end-effector-goal task's samples (SE(3) log, mean over the valid samples); a prior can be
+# valid and diverse and still not reach the goal pose, which only these columns show
+GOAL = (
+    ("ee_pos_error", "EE pos. error [cm]", 100.0, "{:.1f}"),
+    ("ee_ori_error_deg", "EE ori. error [°]", 1.0, "{:.1f}"),
+)
 
 
 def recipe_columns(d: pd.DataFrame) -> list[str]:
@@ -60,6 +67,11 @@ def curve_points(d: pd.DataFrame) -> pd.DataFrame:
         }
         for col, _, scale, binary in (*METRICS, DIVERSITY):
             row[col] = interval(g[col], scale, binary=binary) if col in g.columns else None
+        for col, _, scale, _ in GOAL:
+            v = pd.to_numeric(g[col], errors="coerce") if col in g.columns else pd.Series(dtype=float)
+            # a joint-goal task's samples end on their goal by construction (the last control point is the goal):
+            # zero up to the FK's rounding (< 10 um, < 1e-3 deg), not a measurement of the prior
+            row[col] = interval(v.dropna(), scale) if (v.abs() > 1e-5).any() else None
         out.append(row)
     return pd.DataFrame(out).sort_values(["task", "method", "recipe", "steps"]) if out else pd.DataFrame()
 
@@ -119,12 +131,15 @@ def recipes_table(d: pd.DataFrame) -> str:
     pts = curve_points(d)
     head = ["task", "method", "recipe", "steps", "train [min]", "contexts", "success [%]", "fraction valid [%]"]
     head += ["Vendi"]
+    goal = [g for g in GOAL if pts[g[0]].notna().any()]  # only for end-effector-goal tasks
+    head += [label for _, label, _, _ in goal]
     lines = ["| " + " | ".join(head) + " |", "| " + " | ".join(["---"] * 3 + ["---:"] * (len(head) - 3)) + " |"]
     for _, p in pts.iterrows():
         cells = [short_task(p["task"]), method_label(p["method"]), p["recipe"], str(p["steps"]), f"{p['minutes']:.1f}"]
         cells += [str(p["contexts"])]
         cells += [fmt_estimate(p[c], "{:.1f}") for c in ("success", "fraction_valid")]
         cells += [fmt_estimate(p["vendi"], "{:.2f}")]
+        cells += [fmt_estimate(p[c], f) if isinstance(p[c], Estimate) else "–" for c, _, _, f in goal]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
