@@ -322,3 +322,10 @@ def test_recipe_table_shows_the_goal_error_of_end_effector_goal_tasks_only():
     assert panda[-1].startswith(f"{g['ee_ori_error_deg'].mean():.1f} [")
     d2 = pd.read_parquet(root / "recipe-study-2d" / "results.parquet").assign(scene=TRAIN)
     assert "EE pos." not in recipes_table(d2)
+    # the learning curves get a fourth panel, the goal error: drawn for the Panda, a note for the planar arm
+    from mpd.viz.report_training import learning_curve_figure
+
+    axes = learning_curve_figure(prepare(pd.read_parquet(root / "priors-cpu" / "results.parquet"))).axes
+    assert len(axes) == 8 and axes[7].get_title().endswith("EE pos. error [cm]")
+    assert not axes[3].axison and axes[7].axison and len(axes[7].lines) > 0
+    assert len(learning_curve_figure(prepare(pd.read_parquet(root / "recipe-study-2d" / "results.parquet"))).axes) == 6

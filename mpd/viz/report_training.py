@@ -87,6 +87,8 @@ def learning_curve_figure(d: pd.DataFrame) -> Figure | None:
     recipes = sorted(pts["recipe"].unique())
     colors = {r: RECIPE_COLORS[i % len(RECIPE_COLORS)] for i, r in enumerate(recipes)}
     panels = (*METRICS, DIVERSITY)
+    if pts[GOAL[0][0]].notna().any():  # an end-effector-goal task: how far its samples end from the goal pose
+        panels += ((GOAL[0][0], GOAL[0][1], GOAL[0][2], False),)
     with style():
         fig = Figure(figsize=(3.0 * len(panels) + 0.4, 2.5 * len(tasks) + 0.9), layout="constrained")
         axes = fig.subplots(len(tasks), len(panels), squeeze=False)
@@ -94,6 +96,11 @@ def learning_curve_figure(d: pd.DataFrame) -> Figure | None:
             pt = pts[pts["task"] == task]
             for c, (col, label, _, _) in enumerate(panels):
                 ax = axes[r, c]
+                if not any(isinstance(e, Estimate) for e in pt[col]):  # the goal error of a joint-goal task
+                    ax.text(0.5, 0.5, "joint-space goal:\nreached by construction", ha="center", va="center",
+                            transform=ax.transAxes, fontsize=7, color="0.4")  # fmt: skip
+                    ax.set_axis_off()
+                    continue
                 for (method, recipe), g in pt.groupby(["method", "recipe"], sort=True):
                     est = [e for e in g[col]]
                     x = g["minutes"].to_numpy()
@@ -111,7 +118,7 @@ def learning_curve_figure(d: pd.DataFrame) -> Figure | None:
                             ax.annotate(
                                 f"{s // 1000}k", (xi, yi), textcoords="offset points", xytext=(3, -8), fontsize=6
                             )
-                if col != "vendi":
+                if col in ("success", "fraction_valid"):
                     ax.set_ylim(-3, 103)
                 ax.set_xscale("log")  # budgets double: a log axis spaces them evenly
                 plain_log_ticks(ax.xaxis)
