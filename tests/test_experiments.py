@@ -439,6 +439,33 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000
 
 
+def test_a_run_made_in_parts_keeps_every_parts_tasks_cells_and_artifacts(work):
+    """`--only task=A`, then `--only task=B` into one run folder: the manifest names both tasks' files, cells and
+    artifacts (dataset and its hash), as the rows do (the second part once overwrote the first's artifacts)."""
+    narrow = "EnvNarrowPassageDense2D-RobotPointMass2D"
+    (work / "tinyn.toml").write_text((work / "tiny0.toml").read_text().replace(TASK, narrow).replace("tiny0", "tinyn"))
+    p = write_spec(work, "parts", n_contexts=2)
+    p.write_text(
+        p.read_text()
+        .replace(f'task = ["{TASK}"]', f'task = ["{TASK}", "{narrow}"]')
+        .replace("extra_objects = [false, true]", "extra_objects = [false]")
+        + f'[tasks."{narrow}"]\ndataset = "{work / "tinyn"}.toml"\n'
+    )
+    run_dir = work / "runs" / "parts"
+    for task in (TASK, narrow):
+        Runner(load_spec(p), only={"task": [task]}, run_dir=run_dir, progress=False).run()
+    m = json.loads((run_dir / "manifest.json").read_text())
+    df = read_results(run_dir)
+    assert set(df["task"]) == {TASK, narrow} == set(m["artifacts"]) == set(m["task_files"])
+    assert {c["task"] for c in m["cells"]} == {TASK, narrow} and len(m["cells"]) == 2
+    for task, g in df.groupby("task"):
+        assert set(g["dataset_hash"]) == {m["artifacts"][task]["dataset_hash"]}
+    # a folder reused for another spec starts its manifest afresh
+    q = write_spec(work, "parts2", n_contexts=2)
+    Runner(load_spec(q), run_dir=run_dir, progress=False).run()
+    assert set(json.loads((run_dir / "manifest.json").read_text())["task_files"]) == {TASK}
+
+
 def test_training_chains_join_the_budgets_of_one_recipe_and_one_network_only():
     """The wsd budgets of one recipe train in one worker (the longer resumes from the shorter's stable phase); two
     networks or two recipes are separate chains that train in parallel (two widths were once one serial chain)."""

@@ -149,7 +149,8 @@ class Runner:
             self.spec, self.cells, progress=self.progress, workers=self.workers, executor=self.executor,
             address=self.address,
         )  # fmt: skip
-        manifest["artifacts"] = {k: v.summary() for k, v in resolved.items()}
+        # a run made in parts (`--only` one task, then another, into one run folder) keeps every part's artifacts
+        manifest["artifacts"] = {**self._previous.get("artifacts", {}), **{k: v.summary() for k, v in resolved.items()}}
         manifest["status"] = "running"
         write_json(manifest, self.run_dir / "manifest.json")
         units = list(self._units(resolved, store))
@@ -184,6 +185,11 @@ class Runner:
             import json
 
             prev = json.loads((self.run_dir / "manifest.json").read_text())
+        # the parts of one spec merge (the tasks, cells and artifacts of earlier `--only` parts stay named); a run
+        # folder reused for another spec does not inherit them
+        self._previous = prev if prev.get("spec_hash") == self.spec.hash else {}
+        cells = {c["key"]: c for c in self._previous.get("cells", [])}
+        cells.update({c.key: {"key": c.key, **c.p} for c in self.cells})
         return {
             "run_id": self.run_dir.name,
             "spec_name": self.spec.name,
@@ -192,10 +198,13 @@ class Runner:
             "spec": self.spec.raw,
             # name -> file and sha256 of every task: reports and recordings find a task given by path by its name
             "task_files": {
-                n: {"path": _repo_relative(self.spec.task_file(n)), "sha256": file_sha256(self.spec.task_file(n))}
-                for n in sorted({c.p["task"] for c in self.cells})
+                **self._previous.get("task_files", {}),
+                **{
+                    n: {"path": _repo_relative(self.spec.task_file(n)), "sha256": file_sha256(self.spec.task_file(n))}
+                    for n in sorted({c.p["task"] for c in self.cells})
+                },
             },
-            "cells": [{"key": c.key, **c.p} for c in self.cells],
+            "cells": sorted(cells.values(), key=lambda c: c["key"]),
             "executor": self.executor,
             "workers": self.workers,
             "device": self.device,
