@@ -466,6 +466,38 @@ def test_a_run_made_in_parts_keeps_every_parts_tasks_cells_and_artifacts(work):
     assert set(json.loads((run_dir / "manifest.json").read_text())["task_files"]) == {TASK}
 
 
+def test_parts_by_method_keep_every_model_of_a_task_in_the_manifest():
+    """`--only method=dprior`, then `--only method=cvae` into one folder: the task's manifest entry names both models
+    and their sources (the second part once replaced the first's models); a part on another dataset of the task
+    replaces the entry (its models belong to other data), and other tasks' entries are kept."""
+    from mpd.experiments.runner import merge_artifacts
+
+    def art(dataset, models, sources, scenes):
+        return {
+            "task_hash": "t",
+            "dataset_hash": dataset,
+            "dataset_source": "digest",
+            "models": models,
+            "model_sources": sources,
+            "contexts": {s: {"sha256": s} for s in scenes},
+        }
+
+    first = {
+        "A": art("d1", {"diffusion-bspline": "m1"}, {"diffusion-bspline": "shipped"}, ["training"]),
+        "B": art("d9", {"diffusion-bspline": "m9"}, {"diffusion-bspline": "cache"}, ["training"]),
+    }
+    second = {"A": {**art("d1", {"cvae-bspline": "m2"}, {"cvae-bspline": "cache"}, ["extra-objects"]),
+                    "dataset_source": "cache"}}  # fmt: skip
+    m = merge_artifacts(first, second)
+    assert m["A"]["models"] == {"diffusion-bspline": "m1", "cvae-bspline": "m2"}
+    assert m["A"]["model_sources"] == {"diffusion-bspline": "shipped", "cvae-bspline": "cache"}
+    assert set(m["A"]["contexts"]) == {"training", "extra-objects"}
+    assert m["A"]["dataset_source"] == "cache" and m["B"] == first["B"]
+    other = {"A": art("d2", {"cvae-bspline": "m3"}, {"cvae-bspline": "cache"}, ["training"])}
+    assert merge_artifacts(first, other)["A"] == other["A"]
+    assert first["A"]["models"] == {"diffusion-bspline": "m1"}  # the inputs are not modified
+
+
 def test_training_chains_join_the_budgets_of_one_recipe_and_one_network_only():
     """The wsd budgets of one recipe train in one worker (the longer resumes from the shorter's stable phase); two
     networks or two recipes are separate chains that train in parallel (two widths were once one serial chain)."""

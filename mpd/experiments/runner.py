@@ -49,6 +49,26 @@ def plan_seed(seed: int, context_index: int) -> int:
     return int(seed) * 100_003 + int(context_index)
 
 
+
+def merge_artifacts(previous: dict, current: dict) -> dict:
+    """The artifacts of a run made in parts: per task, the current part's summary, with the models and contexts of
+    the earlier parts kept beside its own when both parts used the same task file and dataset (`--only
+    method=dprior`, then `--only method=cvae` into one folder once kept only the CVAE). A task whose task file or
+    dataset changed between parts takes the current part's summary only (the earlier models belong to other data)."""
+    out = dict(previous)
+    for task, now in current.items():
+        before = previous.get(task)
+        same = before is not None and all(before.get(k) == now.get(k) for k in ("task_hash", "dataset_hash"))
+        if not same:
+            out[task] = now
+            continue
+        merged = dict(now)
+        for key in ("models", "model_sources", "contexts"):
+            if isinstance(before.get(key), dict) or isinstance(now.get(key), dict):
+                merged[key] = {**(before.get(key) or {}), **(now.get(key) or {})}
+        out[task] = merged
+    return out
+
 class Runner:
     def __init__(
         self,
@@ -150,7 +170,9 @@ class Runner:
             address=self.address,
         )  # fmt: skip
         # a run made in parts (`--only` one task, then another, into one run folder) keeps every part's artifacts
-        manifest["artifacts"] = {**self._previous.get("artifacts", {}), **{k: v.summary() for k, v in resolved.items()}}
+        manifest["artifacts"] = merge_artifacts(
+            self._previous.get("artifacts", {}), {k: v.summary() for k, v in resolved.items()}
+        )
         manifest["status"] = "running"
         write_json(manifest, self.run_dir / "manifest.json")
         units = list(self._units(resolved, store))
