@@ -49,7 +49,6 @@ def plan_seed(seed: int, context_index: int) -> int:
     return int(seed) * 100_003 + int(context_index)
 
 
-
 def merge_artifacts(previous: dict, current: dict) -> dict:
     """The artifacts of a run made in parts: per task, the current part's summary, with the models and contexts of
     the earlier parts kept beside its own when both parts used the same task file and dataset (`--only
@@ -68,6 +67,7 @@ def merge_artifacts(previous: dict, current: dict) -> dict:
                 merged[key] = {**(before.get(key) or {}), **(now.get(key) or {})}
         out[task] = merged
     return out
+
 
 class Runner:
     def __init__(
