@@ -277,6 +277,10 @@ def test_evaluation_contexts_fixed(tmp_path, monkeypatch):
             'name = "bad"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\n[planner]\ntime_limit = "x"\n',
             "planner.time_limit",
         ),
+        (
+            'name = "bad"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\n[planner]\nmax_checks = -1\n',
+            "planner",
+        ),
         ('name = "other"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\n', "name"),
         ('name = "bad"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 0\n', "n_contexts"),
     ],
@@ -386,6 +390,49 @@ def test_batched_context_sampling_is_one_context_at_a_time():
                 assert np.array_equal(a.q_start, b.q_start) and np.array_equal(a.q_goal, b.q_goal)
     assert {c.source for c in [one(sampler, r) for r in rngs()]} >= {1, 2}  # both IK kinds of context
     assert len({type(c) for c in hard.sample_many(rngs())}) == 2  # successes and failures
+
+
+def test_a_check_budget_ends_a_problem_after_the_same_work_on_any_machine(tmp_path):
+    """``planner.max_checks``: a problem not solved within the budget fails with status "budget" after the same
+    checks whatever the time limit (so on a slow or busy machine too); one solved within it gives the very path the
+    time limit alone gives (the budget changes no solved problem); a definition with ``max_checks = 0`` keeps the
+    identity of one without the field, and a budget changes it."""
+    import dataclasses
+
+    from mpd.data.contexts import ContextSampler
+    from mpd.data.planning import JointSpacePlanner, PlannerSettings, default_check_step, problem_seed
+
+    task = load_task("EnvNarrowPassageDense2D-RobotPointMass2D")
+    checker = make_checker(task, "spheres", task.spec.collision.clearance, False, "sphere_pairs")
+    sampler = ContextSampler(task, checker)
+    base = PlannerSettings(time_limit=10.0, check_step=default_check_step(task))
+    n = task.spec.trajectory.n_points
+
+    def plan(settings, c, i):  # (OMPL ignores a seed of 0: problem seeds are hashes)
+        return JointSpacePlanner(checker, settings, n).plan(c.q_start, c.q_goal, problem_seed(3, i))
+
+    for i in range(50):  # a problem that takes many checks (a straight connection takes a handful)
+        c = sampler.sample(np.random.default_rng([3, i]))
+        free = plan(base, c, i)
+        if free.success and free.stats["solve_checks"] >= 200:
+            break
+    else:
+        pytest.fail("no problem needing >= 200 checks among 50")
+    needed = free.stats["solve_checks"]
+    within = plan(dataclasses.replace(base, max_checks=10 * needed), c, i)
+    assert within.status == "ok" and within.stats == {**free.stats, "solve_s": within.stats["solve_s"]}
+    assert np.array_equal(within.path, free.path)
+    short = [plan(dataclasses.replace(base, max_checks=needed // 4, time_limit=t), c, i) for t in (1000.0, 1.0)]
+    assert [r.status for r in short] == ["budget", "budget"]
+    assert short[0].stats["checks"] == short[1].stats["checks"] >= needed // 4
+    assert short[0].stats["checks"] < needed
+
+    ids = []
+    for extra in ("", "[planner]\nmax_checks = 0\n", "[planner]\nmax_checks = 100000\n"):
+        p = tmp_path / "budget.toml"
+        p.write_text('name = "budget"\ntask = "EnvSimple2D-RobotPointMass2D"\nn_contexts = 4\n' + extra)
+        ids.append(load_definition(p).identity)
+    assert ids[0] == ids[1] != ids[2]
 
 
 # the first chunk of each committed small dataset whose problems all solve well inside the time limit (a problem

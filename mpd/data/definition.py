@@ -104,6 +104,8 @@ class _PlannerFields(PlannerSettings):
             raise ValueError("range must be >= 0 (0 = OMPL default)")
         if self.resample not in ("arc_length", "v1"):
             raise ValueError(f"resample must be arc_length or v1, got {self.resample!r}")
+        if self.max_checks < 0:
+            raise ValueError("max_checks must be >= 0 (0 = no budget: the time limit alone)")
 
 
 @dataclass(frozen=True)
@@ -183,6 +185,9 @@ def identity_of(defn: DatasetDefinition, task: Task) -> str:
     if content["planner"].get("resample") == "v1":
         # the definitions generated before planner.resample existed keep their identities (and their data)
         del content["planner"]["resample"]
+    if content["planner"].get("max_checks") == 0:
+        # the definitions without a check budget keep their identities (and their data)
+        del content["planner"]["max_checks"]
     return stable_hash(content, task_data_hash(task), file_sha256(robot_file(task)), GENERATOR_VERSION)
 
 
@@ -204,6 +209,7 @@ def resolve(raw: DatasetDefinition, path: Path | None = None) -> ResolvedDefinit
         check_step=default_check_step(task) if p.check_step is None else p.check_step,
         simplify=p.simplify,
         resample=p.resample,
+        max_checks=p.max_checks,
     )
     clearance = task.spec.collision.clearance if raw.checker.clearance is None else raw.checker.clearance
     fields = {f.name: getattr(raw, f.name) for f in dataclasses.fields(DatasetDefinition)}

@@ -39,7 +39,8 @@ from mpd.data.storage import (
 from mpd.provenance import provenance
 from mpd.schema import file_sha256
 
-STATUSES = ("ok", "no_context", "invalid_start", "invalid_goal", "timeout", "post_check")
+# stored as indices: new statuses go at the end
+STATUSES = ("ok", "no_context", "invalid_start", "invalid_goal", "timeout", "post_check", "budget")
 POST_CHECK_ATTEMPTS = 3
 
 # ---------------------------------------------------------------------------------------------- worker side

@@ -4,7 +4,9 @@ Reproducibility. OMPL draws every random number from generators seeded by one gl
 (``ompl.util.RNG.setSeed``). Each problem reseeds it with a seed derived from (dataset seed, context index)
 and then builds its own space, planner and simplifier, so a path depends on neither the worker nor the
 problems solved before it. RRTConnect stops at its first solution, so a problem solved within the time limit
-is reproducible; only a problem that runs into the limit could end differently on a slower machine. The
+is reproducible; only a problem that runs into the limit could end differently on a slower machine (or on a
+busy one). ``max_checks`` replaces that limit by a budget of collision checks (states and edges checked) per
+problem, which ends the same way on every machine; the time limit then stays only as a safety net. The
 authors simplify with ``simplify(path, maxTime=0.1)``, whose result depends on how much work fits into 0.1 s;
 ``simplifyMax`` runs the same steps to completion and is deterministic.
 
@@ -46,10 +48,16 @@ class PlannerSettings:
     # proportion to each edge's length like OMPL's interpolate(n); "v1", the allocation of mpd until 2026-12-02
     # (a bug: about equally many states per edge, capped by its grid), kept for the definitions generated with it
     resample: Literal["arc_length", "v1"] = "arc_length"
+    # a budget of collision checks per problem (state checks + edge checks), 0 = none. With a budget a problem
+    # that is not solved within it fails with status "budget" after the same work on every machine; without one,
+    # the time limit decides, and a problem near it can end differently on a slower or busier machine
+    max_checks: int = 0
 
     def validate(self) -> None:
         if self.time_limit <= 0:
             raise ValueError("time_limit must be positive")
+        if self.max_checks < 0:
+            raise ValueError("max_checks must be >= 0 (0 = no budget: the time limit alone)")
         if self.check_step <= 0:
             raise ValueError("check_step must be positive")
         if self.range < 0:
@@ -61,7 +69,7 @@ class PlannerSettings:
 @dataclass
 class PlanResult:
     success: bool
-    status: str  # "ok", "invalid_start", "invalid_goal", "timeout", "post_check"
+    status: str  # "ok", "invalid_start", "invalid_goal", "timeout", "budget", "post_check"
     time: float  # seconds: planning + simplification + resampling
     path: np.ndarray | None = None  # (n_points, dof)
     n_vertices: int = 0  # after simplification
@@ -191,17 +199,23 @@ class JointSpacePlanner:
         self.lo = robot.q_min.numpy()
         self.hi = robot.q_max.numpy()
         self.batched = isinstance(checker, SphereChecker)
+        self.n_checks = 0  # collision checks (states + edges) of the current problem
+
+    def _exhausted(self) -> bool:
+        return self.n_checks >= self.settings.max_checks
 
     # -- OMPL callbacks ----------------------------------------------------------------------------------
     def _state(self, s) -> np.ndarray:
         return np.array([s[i] for i in range(self.dof)])
 
     def _valid_state(self, s) -> bool:
+        self.n_checks += 1
         return bool(self.checker.valid(self._state(s)[None])[0])
 
     def _valid_edge(self, a: np.ndarray, b: np.ndarray) -> bool:
         # the states of ``edge_states`` in the compiled checker: the end state first, then a coarse pass spread
         # over the edge (which stops most edges in collision after a few states), then the rest
+        self.n_checks += 1
         d = b - a
         n = grid_count(math.sqrt(float(d @ d)), self.settings.check_step)
         return self.checker.edge_valid(a, b, n, self.chunk)
@@ -261,11 +275,23 @@ class JointSpacePlanner:
                 a[i] = float(q_start[i])
                 g[i] = float(q_goal[i])
             ss.setStartAndGoalStates(a, g)
-            status = ss.solve(self.settings.time_limit)
+            self.n_checks = 0
+            if self.settings.max_checks > 0:
+                # evaluated by the planner at every iteration (no period, so no timer thread): the same work everywhere
+                ptc = ob.plannerOrTerminationCondition(
+                    ob.timedPlannerTerminationCondition(self.settings.time_limit),
+                    ob.PlannerTerminationCondition(self._exhausted),
+                )
+                status = ss.solve(ptc)
+            else:
+                status = ss.solve(self.settings.time_limit)
             t_solve = time.perf_counter() - t0
+            solve_checks = self.n_checks
             # only an exact solution counts (bool(status) is also true for an approximate one)
             if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION:
-                return PlanResult(False, "timeout", time.perf_counter() - t0, stats={"solve_s": t_solve})
+                reason = "budget" if self.settings.max_checks > 0 and self._exhausted() else "timeout"
+                stats = {"solve_s": t_solve, "solve_checks": solve_checks, "checks": self.n_checks}
+                return PlanResult(False, reason, time.perf_counter() - t0, stats=stats)
             path = ss.getSolutionPath()
             if self.settings.simplify == "max":
                 og.PathSimplifier(si).simplifyMax(path)
@@ -279,7 +305,7 @@ class JointSpacePlanner:
             dense = dense.astype(self.store_dtype).astype(np.float64)
         ok = path_valid(self.checker, dense, self.settings.check_step)
         el = time.perf_counter() - t0
-        stats = {"solve_s": t_solve, "n_vertices": len(vertices)}
+        stats = {"solve_s": t_solve, "n_vertices": len(vertices), "solve_checks": solve_checks, "checks": self.n_checks}
         if not ok:
             return PlanResult(False, "post_check", el, None, len(vertices), stats)
         return PlanResult(True, "ok", el, dense, len(vertices), stats)
