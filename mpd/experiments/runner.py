@@ -61,11 +61,10 @@ def merge_artifacts(previous: dict, current: dict) -> dict:
         if not same:
             out[task] = now
             continue
-        merged = dict(now)
-        for key in ("models", "model_sources", "contexts"):
-            if isinstance(before.get(key), dict) or isinstance(now.get(key), dict):
-                merged[key] = {**(before.get(key) or {}), **(now.get(key) or {})}
-        out[task] = merged
+        out[task] = {
+            **now,
+            **{k: {**before.get(k, {}), **now.get(k, {})} for k in ("models", "model_sources", "contexts")},
+        }
     return out
 
 

@@ -14,8 +14,8 @@ import torch
 
 from mpd.data.dataset import load_dataset
 from mpd.models.checkpoint import load_model
-from mpd.models.context import UNNORMALIZED_KEYS
 from mpd.models.data import SPLIT_VAL, training_arrays
+from mpd.models.train import _to_device
 from mpd.tasks import load_task
 
 
@@ -24,11 +24,9 @@ def main(task_name: str, dataset: str, model_path: str) -> None:
     task, ds, m = load_task(task_name), load_dataset(dataset), load_model(model_path)
     arr = training_arrays(task, ds, "bspline")
     idx = np.flatnonzero(arr.split == SPLIT_VAL)[:2048]
-    x = m.x_normalizer.normalize(torch.as_tensor(arr.x[idx]))
-    ctx = {}
-    for k, v in arr.context.items():
-        t = torch.as_tensor(v[idx])
-        ctx[k] = t if k in UNNORMALIZED_KEYS else m.context_normalizers[k].normalize(t)
+    # normalized as in training (the model's own normalizers)
+    data = _to_device(arr, idx, m.x_normalizer, m.context_normalizers, torch.device("cpu"))
+    x, ctx = data.x, data.context
     perm = torch.as_tensor(np.random.default_rng(0).permutation(len(idx)))
     goal_keys = [k for k in ctx if k != "q_start"]
     variants = {
