@@ -100,12 +100,7 @@ class _PlannerFields(PlannerSettings):
             raise ValueError("time_limit must be positive")
         if self.check_step is not None and self.check_step <= 0:
             raise ValueError("check_step must be positive")
-        if self.range < 0:
-            raise ValueError("range must be >= 0 (0 = OMPL default)")
-        if self.resample not in ("arc_length", "v1"):
-            raise ValueError(f"resample must be arc_length or v1, got {self.resample!r}")
-        if self.max_checks < 0:
-            raise ValueError("max_checks must be >= 0 (0 = no budget: the time limit alone)")
+        self.validate_fixed_fields()
 
 
 @dataclass(frozen=True)

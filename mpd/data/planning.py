@@ -56,10 +56,14 @@ class PlannerSettings:
     def validate(self) -> None:
         if self.time_limit <= 0:
             raise ValueError("time_limit must be positive")
-        if self.max_checks < 0:
-            raise ValueError("max_checks must be >= 0 (0 = no budget: the time limit alone)")
         if self.check_step <= 0:
             raise ValueError("check_step must be positive")
+        self.validate_fixed_fields()
+
+    def validate_fixed_fields(self) -> None:
+        """The fields that have no task-dependent default (a definition file may leave the others to its task)."""
+        if self.max_checks < 0:
+            raise ValueError("max_checks must be >= 0 (0 = no budget: the time limit alone)")
         if self.range < 0:
             raise ValueError("range must be >= 0 (0 = OMPL default)")
         if self.resample not in ("arc_length", "v1"):
