@@ -1,0 +1,130 @@
+"""How fast can a network learn the goal configuration alone? A probe for the Panda prior's slow goal learning.
+
+The Panda prior has to produce a final configuration whose end-effector pose is the context's goal pose: a learned
+inverse kinematics (a 1-D self-motion manifold of solutions per pose, in several branches). This probe trains the
+smallest model of that part alone: a conditional diffusion model (same cosine schedule, epsilon loss, 100 steps) of
+the final configuration w_last only (the last free B-spline row, 7 values), given the same normalized context
+(q_start, goal position, flattened goal rotation), with an MLP denoiser, and measures how far its samples end from
+the goal pose on held-out (validation) contexts, after each budget of steps. If this small model learns the map
+quickly, the U-Net prior is slow for its own reasons (its size, its conditioning path, its loss spread over 32
+rows); if it is slow too, the map itself is what takes the training.
+
+Usage: MPD_CACHE=... python ik_probe.py [TASK] [DATASET] [STEPS,STEPS,...] [WIDTH]
+(defaults: EnvSpheres3D-RobotPanda EnvSpheres3D-RobotPanda-cpu 1000,3000,10000,30000 256)
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from mpd.data.dataset import load_dataset
+from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, fit_normalizers, training_arrays
+from mpd.models.diffusion import ddpm_step, get_schedule, q_sample
+from mpd.robots.ik import pose_errors
+from mpd.tasks import load_task
+
+
+def time_embedding(t: torch.Tensor, dim: int = 32) -> torch.Tensor:
+    half = dim // 2
+    freq = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32) / (half - 1))
+    arg = t.float()[:, None] * freq[None]
+    return torch.cat([arg.sin(), arg.cos()], dim=-1)
+
+
+class Denoiser(nn.Module):
+    def __init__(self, dof: int, ctx_dim: int, width: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(dof + ctx_dim + 32, width),
+            nn.Mish(),
+            nn.Linear(width, width),
+            nn.Mish(),
+            nn.Linear(width, width),
+            nn.Mish(),
+            nn.Linear(width, dof),
+        )
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, ctx: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([x_t, ctx, time_embedding(t)], dim=-1))
+
+
+@torch.no_grad()
+def sample(net: nn.Module, ctx: torch.Tensor, n_per: int, dof: int, seed: int) -> torch.Tensor:
+    """DDPM, all 100 steps (the sampler is not what this probe measures)."""
+    sch = get_schedule()
+    g = torch.Generator().manual_seed(seed)
+    c = ctx.repeat_interleave(n_per, dim=0)
+    x = torch.randn(len(c), dof, generator=g)
+    for t in reversed(range(sch.n_steps)):
+        eps = net(x, torch.full((len(c),), t), c)
+        x = ddpm_step(x, eps, t, torch.randn(x.shape, generator=g), schedule=sch)
+    return x
+
+
+def main(task_name: str, dataset: str, budgets: list[int], width: int) -> None:
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    task, ds = load_task(task_name), load_dataset(dataset)
+    arr = training_arrays(task, ds, "bspline")
+    x_norm, ctx_norms = fit_normalizers(arr)
+    w = torch.as_tensor(arr.x[:, -1, :])  # the final configuration (the last free row), raw units
+    y = x_norm.normalize(w[:, None, :])[:, 0, :]
+    ctx = torch.cat(
+        [
+            ctx_norms["q_start"].normalize(torch.as_tensor(arr.context["q_start"])),
+            ctx_norms["ee_pos"].normalize(torch.as_tensor(arr.context["ee_pos"])),
+            torch.as_tensor(arr.context["ee_rot"]).flatten(1),
+        ],
+        dim=-1,
+    ).float()
+    tr, va = np.flatnonzero(arr.split == SPLIT_TRAIN), np.flatnonzero(arr.split == SPLIT_VAL)[:200]
+    y_tr, c_tr = y[tr].float(), ctx[tr]
+    dof = y.shape[1]
+    net = Denoiser(dof, ctx.shape[1], width)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    sch, g = get_schedule(), torch.Generator().manual_seed(1)
+    goal_pos = torch.as_tensor(arr.context["ee_pos"][va]).double()
+    goal_rot = torch.as_tensor(arr.context["ee_rot"][va]).double()
+    n_per = 10
+    print(f"{task_name}: {len(tr)} training rows, {len(va)} validation contexts x {n_per} samples, width {width}")
+    print("| steps | train [s] | loss | EE position error, median [cm] | best of 10 [cm] | rotation, median [deg] |")
+    print("| ---: | ---: | ---: | ---: | ---: | ---: |")
+    step, t0, ema_loss = 0, time.perf_counter(), float("nan")
+    for budget in budgets:
+        net.train()
+        while step < budget:
+            i = torch.randint(len(tr), (512,), generator=g)
+            t = torch.randint(sch.n_steps, (512,), generator=g)
+            noise = torch.randn(512, dof, generator=g)
+            loss = (net(q_sample(y_tr[i], t, noise, sch), t, c_tr[i]) - noise).pow(2).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            ema_loss = loss.item() if math.isnan(ema_loss) else 0.99 * ema_loss + 0.01 * loss.item()
+            step += 1
+        train_s = time.perf_counter() - t0
+        net.eval()
+        q = x_norm.unnormalize(sample(net, ctx[va], n_per, dof, seed=2)[:, None, :])[:, 0, :].double()
+        ep, er = pose_errors(task.robot, q, goal_pos.repeat_interleave(n_per, 0), goal_rot.repeat_interleave(n_per, 0))
+        ep, er = ep.reshape(-1, n_per), er.reshape(-1, n_per)
+        print(
+            f"| {step} | {train_s:.0f} | {ema_loss:.4f} | {100 * ep.median():.1f} | {100 * ep.min(1).values.median():.1f}"
+            f" | {math.degrees(er.median()):.1f} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    a = sys.argv[1:]
+    main(
+        a[0] if len(a) > 0 else "EnvSpheres3D-RobotPanda",
+        a[1] if len(a) > 1 else "EnvSpheres3D-RobotPanda-cpu",
+        [int(s) for s in (a[2] if len(a) > 2 else "1000,3000,10000,30000").split(",")],
+        int(a[3]) if len(a) > 3 else 256,
+    )
