@@ -114,8 +114,8 @@ def main(task_name: str, dataset: str, budgets: list[int], width: int) -> None:
         ep, er = pose_errors(task.robot, q, goal_pos.repeat_interleave(n_per, 0), goal_rot.repeat_interleave(n_per, 0))
         ep, er = ep.reshape(-1, n_per), er.reshape(-1, n_per)
         print(
-            f"| {step} | {train_s:.0f} | {ema_loss:.4f} | {100 * ep.median():.1f} | {100 * ep.min(1).values.median():.1f}"
-            f" | {math.degrees(er.median()):.1f} |",
+            f"| {step} | {train_s:.0f} | {ema_loss:.4f} | {100 * ep.median():.1f}"
+            f" | {100 * ep.min(1).values.median():.1f} | {math.degrees(er.median()):.1f} |",
             flush=True,
         )
 
