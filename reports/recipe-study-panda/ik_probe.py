@@ -9,8 +9,9 @@ the goal pose on held-out (validation) contexts, after each budget of steps. If 
 quickly, the U-Net prior is slow for its own reasons (its size, its conditioning path, its loss spread over 32
 rows); if it is slow too, the map itself is what takes the training.
 
-Usage: MPD_CACHE=... python ik_probe.py [TASK] [DATASET] [STEPS,STEPS,...] [WIDTH]
-(defaults: EnvSpheres3D-RobotPanda EnvSpheres3D-RobotPanda-cpu 1000,3000,10000,30000 256)
+Usage: MPD_CACHE=... python ik_probe.py [TASK] [DATASET] [STEPS,STEPS,...] [WIDTH] [film]
+(defaults: EnvSpheres3D-RobotPanda EnvSpheres3D-RobotPanda-cpu 1000,3000,10000,30000 256; ``film``: the context enters
+only through FiLM of the hidden layers, as in the U-Net, instead of being concatenated to the input)
 """
 
 from __future__ import annotations
@@ -54,6 +55,29 @@ class Denoiser(nn.Module):
         return self.net(torch.cat([x_t, ctx, time_embedding(t)], dim=-1))
 
 
+class FilmDenoiser(nn.Module):
+    """The same MLP, but the context reaches it only as the U-Net's does: an embedding of [time, context] that
+    scales and shifts each hidden layer (FiLM); the input is the noisy configuration alone."""
+
+    def __init__(self, dof: int, ctx_dim: int, width: int):
+        super().__init__()
+        self.ctx = nn.Sequential(nn.Linear(ctx_dim, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU())
+        self.inp = nn.Linear(dof, width)
+        self.hidden = nn.ModuleList([nn.Linear(width, width) for _ in range(2)])
+        self.film = nn.ModuleList([nn.Sequential(nn.Mish(), nn.Linear(128 + 32, 2 * width)) for _ in range(3)])
+        self.out = nn.Linear(width, dof)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, ctx: torch.Tensor) -> torch.Tensor:
+        cond = torch.cat([self.ctx(ctx), time_embedding(t)], dim=-1)
+        h = self.inp(x_t)
+        for i, film in enumerate(self.film):
+            scale, shift = film(cond).chunk(2, dim=-1)
+            h = nn.functional.mish(h * (1 + scale) + shift)
+            if i < len(self.hidden):
+                h = self.hidden[i](h)
+        return self.out(h)
+
+
 @torch.no_grad()
 def sample(net: nn.Module, ctx: torch.Tensor, n_per: int, dof: int, seed: int) -> torch.Tensor:
     """DDPM, all 100 steps (the sampler is not what this probe measures)."""
@@ -67,7 +91,7 @@ def sample(net: nn.Module, ctx: torch.Tensor, n_per: int, dof: int, seed: int) -
     return x
 
 
-def main(task_name: str, dataset: str, budgets: list[int], width: int) -> None:
+def main(task_name: str, dataset: str, budgets: list[int], width: int, film: bool = False) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
     task, ds = load_task(task_name), load_dataset(dataset)
@@ -86,13 +110,16 @@ def main(task_name: str, dataset: str, budgets: list[int], width: int) -> None:
     tr, va = np.flatnonzero(arr.split == SPLIT_TRAIN), np.flatnonzero(arr.split == SPLIT_VAL)[:200]
     y_tr, c_tr = y[tr].float(), ctx[tr]
     dof = y.shape[1]
-    net = Denoiser(dof, ctx.shape[1], width)
+    net = (FilmDenoiser if film else Denoiser)(dof, ctx.shape[1], width)
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     sch, g = get_schedule(), torch.Generator().manual_seed(1)
     goal_pos = torch.as_tensor(arr.context["ee_pos"][va]).double()
     goal_rot = torch.as_tensor(arr.context["ee_rot"][va]).double()
     n_per = 10
-    print(f"{task_name}: {len(tr)} training rows, {len(va)} validation contexts x {n_per} samples, width {width}")
+    print(
+        f"{task_name}: {len(tr)} training rows, {len(va)} validation contexts x {n_per} samples, width {width}"
+        f", context {'through FiLM only' if film else 'concatenated to the input'}"
+    )
     print("| steps | train [s] | loss | EE position error, median [cm] | best of 10 [cm] | rotation, median [deg] |")
     print("| ---: | ---: | ---: | ---: | ---: | ---: |")
     step, t0, ema_loss = 0, time.perf_counter(), float("nan")
@@ -127,4 +154,5 @@ if __name__ == "__main__":
         a[1] if len(a) > 1 else "EnvSpheres3D-RobotPanda-cpu",
         [int(s) for s in (a[2] if len(a) > 2 else "1000,3000,10000,30000").split(",")],
         int(a[3]) if len(a) > 3 else 256,
+        film=len(a) > 4 and a[4] == "film",
     )
