@@ -27,15 +27,11 @@ from torch import nn
 from mpd.data.dataset import load_dataset
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, fit_normalizers, training_arrays
 from mpd.models.diffusion import ddpm_step, get_schedule, q_sample
+from mpd.models.unet import SinusoidalPosEmb
 from mpd.robots.ik import pose_errors
 from mpd.tasks import load_task
 
-
-def time_embedding(t: torch.Tensor, dim: int = 32) -> torch.Tensor:
-    half = dim // 2
-    freq = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32) / (half - 1))
-    arg = t.float()[:, None] * freq[None]
-    return torch.cat([arg.sin(), arg.cos()], dim=-1)
+time_embedding = SinusoidalPosEmb(32)  # the U-Net's embedding of the diffusion step
 
 
 class Denoiser(nn.Module):
