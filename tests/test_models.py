@@ -606,6 +606,53 @@ def test_min_snr_loss_weights_each_sample_by_min_snr_over_snr():
     assert torch.allclose(uniform, err.mean(), rtol=1e-5)
 
 
+def test_goal_row_weight_is_a_row_weighted_mean_of_the_squared_errors():
+    """An end-effector-goal model's loss with goal_row_weight w, recomputed by hand from the same draws: per sample,
+    (sum of the other rows' mean squared errors + w x the last row's) / (H - 1 + w); with min-SNR on top too."""
+    from mpd.models.diffusion import q_sample, randint, randn
+
+    torch.manual_seed(0)
+    net = DiffusionModel(3, 8, "goal_ee_pose", TINY)
+    x0 = torch.rand(32, 8, 3) * 2 - 1
+    ctx = {"q_start": torch.rand(32, 3), "ee_pos": torch.rand(32, 3), "ee_rot": torch.eye(3).expand(32, 3, 3)}
+    g = torch.Generator().manual_seed(7)
+    t = randint(100, (32,), g, x0.device)
+    noise = randn((32, 8, 3), g, x0.device, x0.dtype)
+    with torch.no_grad():
+        row_err = ((net(q_sample(x0, t, noise, net.schedule), t, ctx) - noise) ** 2).mean(2)  # (32, 8)
+        by_hand = (row_err[:, :-1].sum(1) + 6.0 * row_err[:, -1]) / (7 + 6.0)
+        got = net.loss(x0, ctx, torch.Generator().manual_seed(7), goal_row_weight=6.0)
+        assert torch.allclose(got, by_hand.mean(), rtol=1e-5)
+        assert not torch.allclose(got, row_err.mean(), rtol=1e-3)  # the weight changes the loss
+        abar = torch.as_tensor(net.schedule.tables["alphas_cumprod"], dtype=torch.float32)[t]
+        snr = abar / (1 - abar)
+        w = torch.minimum(snr, torch.full_like(snr, 3.0)) / snr
+        both = net.loss(x0, ctx, torch.Generator().manual_seed(7), weighting="min_snr", min_snr_gamma=3.0,
+                        goal_row_weight=6.0)  # fmt: skip
+        assert torch.allclose(both, (w * by_hand).mean(), rtol=1e-5)
+        plain = net.loss(x0, ctx, torch.Generator().manual_seed(7), goal_row_weight=1.0)
+        assert torch.allclose(plain, row_err.mean(), rtol=1e-5)
+
+
+def test_goal_row_weight_needs_an_end_effector_goal_and_is_not_part_of_a_cvae(tmp_path):
+    from mpd.models.train import model_identity
+
+    ts = tiny_training()
+    weighted = dataclasses.replace(ts, goal_row_weight=8.0)
+    assert model_identity("h", "cvae", "bspline", {}, TINY, weighted, 0) == model_identity(
+        "h", "cvae", "bspline", {}, TINY, ts, 0
+    )
+    with pytest.raises(ValueError, match="goal_row_weight = 8.0: Toy has a joint-space goal"):
+        train_model(toy_arrays(), "diffusion", TINY, weighted, progress=False, cache=tmp_path)
+    ee = toy_arrays(ee=True)
+    a = read_checkpoint(train_model(ee, "diffusion", TINY, ts, progress=False, cache=tmp_path))
+    b = read_checkpoint(train_model(ee, "diffusion", TINY, weighted, progress=False, cache=tmp_path))
+    assert a["identity"] != b["identity"] and b["training_spec"]["goal_row_weight"] == 8.0
+    assert any(not torch.equal(a["weights"][k], b["weights"][k]) for k in a["weights"])
+    c = read_checkpoint(train_model(ee, "cvae", TINY, weighted, progress=False, cache=tmp_path))
+    assert c["training_spec"]["goal_row_weight"] == 1.0  # the CVAE trains as without it
+
+
 def test_sampler_grid_is_the_ddim_runs_distinct_steps():
     from mpd.models.diffusion import ddim_timesteps, sampler_grid
 
@@ -693,6 +740,7 @@ def test_fields_added_to_the_training_spec_keep_older_identities():
         {"loss_weighting": "min_snr"},
         {"decay_fraction": 0.1},
         {"t_sampling": "sampler"},
+        {"goal_row_weight": 8.0},
     ):
         assert model_identity("h", "diffusion", "bspline", {}, TINY, dataclasses.replace(ts, **change), 0) != expected
 
@@ -701,7 +749,7 @@ def test_fields_added_to_the_training_spec_keep_older_identities():
     "field, value",
     [
         ("lr_schedule", "linear"), ("decay_fraction", 1.5), ("precision", "fp16"), ("min_snr_gamma", 0),
-        ("t_sampling", "grid"), ("t_grid_fraction", 1.5),
+        ("t_sampling", "grid"), ("t_grid_fraction", 1.5), ("goal_row_weight", 0.0),
     ],
 )  # fmt: skip
 def test_bad_training_values_are_named(field, value, tmp_path):

@@ -327,6 +327,7 @@ class DiffusionModel(nn.Module):
         min_snr_gamma: float = 5.0,
         t_grid: torch.Tensor | None = None,
         t_grid_fraction: float = 0.0,
+        goal_row_weight: float = 1.0,
     ) -> torch.Tensor:
         """MSE between the true and the predicted noise, t ~ U{0..N-1}; with ``weighting="min_snr"`` each sample's
         squared error is weighted by ``min(SNR_t, gamma) / SNR_t``, SNR_t = abar_t / (1 - abar_t) (Hang et al.
@@ -335,7 +336,11 @@ class DiffusionModel(nn.Module):
         ``t_grid`` (steps, e.g. :func:`sampler_grid`) with ``t_grid_fraction`` = p: each sample's step is drawn
         uniformly from the grid with probability p, else from U{0..N-1}, i.e. t ~ p U(grid) + (1 - p) U{0..N-1}:
         a short training spends its samples on the levels the sampler visits. The uniform draws come first, so
-        the uniform part's stream is the one of a plain run; the grid adds two draws after the noise."""
+        the uniform part's stream is the one of a plain run; the grid adds two draws after the noise.
+
+        ``goal_row_weight`` = w: the squared errors are averaged over rows with weight w for the last row (the free
+        final configuration of an end-effector-goal task) and 1 for the others, i.e. divided by the weights' sum;
+        w = 1 is the plain mean."""
         b = x0.shape[0]
         t = randint(self.n_diffusion_steps, (b,), generator, x0.device)
         noise = randn(tuple(x0.shape), generator, x0.device, x0.dtype)
@@ -344,16 +349,23 @@ class DiffusionModel(nn.Module):
             pick = grid[randint(len(grid), (b,), generator, x0.device)]
             u = torch.rand((b,), generator=generator, device=generator.device if generator is not None else "cpu")
             t = torch.where(u.to(x0.device) < t_grid_fraction, pick, t)
-        pred = self(q_sample(x0, t, noise, self.schedule), t, context)
-        if weighting == "uniform":
-            return F.mse_loss(pred.float(), noise)
-        if weighting != "min_snr":
+        if weighting not in ("uniform", "min_snr"):
             raise ValueError(f"unknown loss weighting {weighting!r} (known: uniform, min_snr)")
+        pred = self(q_sample(x0, t, noise, self.schedule), t, context)
+        if weighting == "uniform" and goal_row_weight == 1.0:
+            return F.mse_loss(pred.float(), noise)
+        sq = (pred.float() - noise).pow(2)  # (b, H, d)
+        if goal_row_weight != 1.0:
+            rows = torch.ones(sq.shape[1], device=sq.device, dtype=sq.dtype)
+            rows[-1] = goal_row_weight
+            per_sample = (sq.mean(2) * rows).sum(1) / rows.sum()
+        else:
+            per_sample = sq.flatten(1).mean(1)
+        if weighting == "uniform":
+            return per_sample.mean()
         abar = self.schedule.table("alphas_cumprod", x0)[t]
         snr = abar / (1 - abar)
-        w = snr.clamp(max=min_snr_gamma) / snr
-        per_sample = (pred.float() - noise).pow(2).flatten(1).mean(1)
-        return (w * per_sample).mean()
+        return (snr.clamp(max=min_snr_gamma) / snr * per_sample).mean()
 
     def sample(self, context: Mapping[str, torch.Tensor], n: int, **kwargs) -> torch.Tensor | tuple:
         """Unguided samples (normalized space); keywords as :func:`sample`."""

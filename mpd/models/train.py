@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -42,7 +43,7 @@ from mpd.models.checkpoint import (
     read_checkpoint,
     save_atomic,
 )
-from mpd.models.context import UNNORMALIZED_KEYS
+from mpd.models.context import EE_GOAL, UNNORMALIZED_KEYS
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
 from mpd.models.diffusion import sampler_grid
 from mpd.models.normalizer import Normalizer
@@ -62,11 +63,15 @@ NETWORK_VERSION = 2
 # defaults, so that the models trained before they existed keep their identity (and their cache folder)
 LATER_TRAINING_FIELDS = (
     "decay_fraction", "loss_weighting", "min_snr_gamma", "precision", "t_sampling", "t_grid_fraction",
+    "goal_row_weight",
 )  # fmt: skip
 
 
-def training_identity(ts: TrainingSpec) -> dict[str, Any]:
-    """The training spec as it enters a model's identity (see LATER_TRAINING_FIELDS)."""
+def training_identity(ts: TrainingSpec, kind: str = "diffusion") -> dict[str, Any]:
+    """The training spec as it enters a model's identity (see LATER_TRAINING_FIELDS). ``goal_row_weight`` is an
+    option of the diffusion loss: a CVAE's identity never carries it."""
+    if kind != "diffusion":
+        ts = dataclasses.replace(ts, goal_row_weight=1.0)
     d = to_dict(ts)
     defaults = to_dict(TrainingSpec(batch_size=ts.batch_size, steps=ts.steps))
     for name in LATER_TRAINING_FIELDS:
@@ -90,7 +95,7 @@ def model_identity(
         parametrization,
         parametrization_settings,
         model_spec,
-        training_identity(training_spec),
+        training_identity(training_spec, kind),
         seed,
         {"network_version": NETWORK_VERSION},
     )
@@ -108,7 +113,7 @@ def trunk_identity(
     """The identity of the stable phase of a ``wsd`` training: everything of the model's identity but the number of
     steps and the decay fraction, which only act after the stable phase. Two wsd models of the same trunk are in the
     same state at every step before either one's decay starts."""
-    ts = to_dict(training_identity(training_spec))
+    ts = to_dict(training_identity(training_spec, kind))
     ts["steps"] = ts["decay_fraction"] = None
     return stable_hash(
         "trunk", dataset_hash, kind, parametrization, parametrization_settings, model_spec, ts, seed,
@@ -276,6 +281,7 @@ def check_training_spec(ts: TrainingSpec) -> None:
         "t_sampling": ts.t_sampling in ("uniform", "sampler"),
         "t_grid_fraction": 0.0 <= ts.t_grid_fraction <= 1.0,
         "precision": ts.precision in ("fp32", "bf16"),
+        "goal_row_weight": ts.goal_row_weight > 0,
         "lr_min_ratio": 0.0 <= ts.lr_min_ratio <= 1.0,
         "ema_decay": 0.0 <= ts.ema_decay < 1.0,
         "ema_every": ts.ema_every >= 1,
@@ -318,6 +324,13 @@ def train_model(
     check_training_spec(training_spec)
     arrays.validate()
     ts = training_spec
+    if kind != "diffusion":  # a diffusion-loss option: the CVAE neither uses it nor carries it in its identity
+        ts = dataclasses.replace(ts, goal_row_weight=1.0)
+    elif ts.goal_row_weight != 1.0 and arrays.context_kind != EE_GOAL:
+        raise ValueError(
+            f"training.goal_row_weight = {ts.goal_row_weight!r}: {arrays.task_name} has a joint-space goal, so the "
+            "model has no free final configuration to weight; use 1"
+        )
     identity = model_identity(
         arrays.dataset_hash,
         kind,
@@ -405,7 +418,9 @@ def train_model(
     )  # fmt: skip
     loss_kwargs = {}
     if kind == "diffusion":
-        loss_kwargs = {"weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma}
+        loss_kwargs = {
+            "weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma, "goal_row_weight": ts.goal_row_weight,
+        }  # fmt: skip
         if ts.t_sampling == "sampler":
             loss_kwargs.update(t_grid=sampler_grid().to(device), t_grid_fraction=ts.t_grid_fraction)
     arithmetic = training_arithmetic(ts.precision, device)

@@ -210,6 +210,12 @@ class TrainingSpec:
     # identity everywhere: bit-identical on the same CPU type, statistically equivalent elsewhere (bf16 and fp32
     # trainings of equal steps sample alike: reports/recipe-study-2d).
     precision: Literal["fp32", "bf16"] = "fp32"
+    # weight of the model's last row in the diffusion loss, relative to 1 for every other row (a weighted mean over
+    # rows). With an end-effector goal that row is the free final configuration (the B-spline's last free control
+    # point, or the last waypoint), the only row that must be read off the goal pose: 1 is the paper; > 1 is a
+    # study option of the `cpu` profiles for the Panda, whose short trainings do not learn the goal
+    # (reports/recipe-study-panda). Joint-goal tasks fix their last rows, so there it must stay 1.
+    goal_row_weight: float = 1.0
 
 
 @dataclass(frozen=True)
