@@ -372,6 +372,7 @@ def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
         ('"model.unet_dim"', "[0]", "axes.model.unet_dim"),
         ('"model.unet_dim_mults"', "[[1, 2]]", "axes.model.unet_dim_mults"),
         ('"model.width"', "[16]", "axes.model.width"),
+        ('"model.goal_head_width"', "[-1]", "axes.model.goal_head_width"),
     ],
 )
 def test_bad_training_axes_name_the_axis(tmp_path, axis, values, where):

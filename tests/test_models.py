@@ -653,6 +653,51 @@ def test_goal_row_weight_needs_an_end_effector_goal_and_is_not_part_of_a_cvae(tm
     assert c["training_spec"]["goal_row_weight"] == 1.0  # the CVAE trains as without it
 
 
+def test_goal_head_starts_as_the_unet_alone_and_corrects_only_the_last_row():
+    from mpd.models.train import model_identity
+
+    torch.manual_seed(0)
+    headed = DiffusionModel(3, 8, "goal_ee_pose", dataclasses.replace(TINY, goal_head_width=32))
+    plain = DiffusionModel(3, 8, "goal_ee_pose", TINY)
+    missing, unexpected = plain.load_state_dict(headed.state_dict(), strict=False)
+    assert not missing and unexpected and all(k.startswith("goal_head.") for k in unexpected)
+    x = torch.randn(6, 8, 3)
+    ctx = {"q_start": torch.rand(1, 3), "ee_pos": torch.rand(1, 3), "ee_rot": torch.eye(3)[None]}
+    t = torch.tensor([0, 5, 20, 50, 80, 99])
+    with torch.no_grad():
+        assert torch.equal(headed(x, t, ctx), plain(x, t, ctx))  # a zero output layer: the U-Net's prediction
+        headed.goal_head.net[-1].bias.fill_(0.5)
+        diff = headed(x, t, ctx) - plain(x, t, ctx)
+    assert torch.equal(diff[:, :-1], torch.zeros_like(diff[:, :-1])) and torch.allclose(diff[:, -1], torch.tensor(0.5))
+    # the last row's head output depends on that row's noisy values, the step and the context
+    loss = headed(x.requires_grad_(), t, ctx)[:, -1].sum()
+    loss.backward()
+    assert x.grad[:, -1].abs().sum() > 0
+    with pytest.raises(ValueError, match="goal_head_width = 32: a goal head needs an end-effector-goal task"):
+        DiffusionModel(3, 8, "goal_joint_position", dataclasses.replace(TINY, goal_head_width=32))
+    # identities: no head is the old identity, a head is another model, and the CVAE ignores it
+    ts = tiny_training()
+    with_head = dataclasses.replace(TINY, goal_head_width=32)
+    assert model_identity("h", "diffusion", "bspline", {}, with_head, ts, 0) != model_identity(
+        "h", "diffusion", "bspline", {}, TINY, ts, 0
+    )
+    assert model_identity("h", "cvae", "bspline", {}, with_head, ts, 0) == model_identity(
+        "h", "cvae", "bspline", {}, TINY, ts, 0
+    )
+
+
+def test_a_goal_head_model_trains_saves_and_loads(tmp_path):
+    ee = toy_arrays(ee=True, n_val=4)
+    spec = dataclasses.replace(TINY, goal_head_width=16)
+    path = train_model(ee, "diffusion", spec, tiny_training(), progress=False, cache=tmp_path)
+    m = load_model(path)
+    assert m.network.goal_head is not None and m.meta["model_spec"]["goal_head_width"] == 16
+    assert float(m.network.goal_head.net[-1].weight.abs().sum()) > 0  # it trained
+    ctx = m.normalize_context({k: torch.as_tensor(v[:1]) for k, v in ee.context.items()})
+    x = m.network.sample(ctx, 4, generator=torch.Generator().manual_seed(0))
+    assert x.shape == (4, ee.x.shape[1], ee.x.shape[2]) and torch.isfinite(x).all()
+
+
 def test_sampler_grid_is_the_ddim_runs_distinct_steps():
     from mpd.models.diffusion import ddim_timesteps, sampler_grid
 
@@ -733,7 +778,8 @@ def test_fields_added_to_the_training_spec_keep_older_identities():
 
     ts = TrainingSpec(batch_size=128, steps=12000, lr=1e-3, lr_schedule="cosine", warmup_steps=200)
     old_form = {k: v for k, v in to_dict(ts).items() if k not in LATER_TRAINING_FIELDS}
-    expected = stable_hash("h", "diffusion", "bspline", {}, TINY, old_form, 0, {"network_version": NETWORK_VERSION})
+    old_net = {k: v for k, v in to_dict(TINY).items() if k != "goal_head_width"}  # a later ModelSpec field
+    expected = stable_hash("h", "diffusion", "bspline", {}, old_net, old_form, 0, {"network_version": NETWORK_VERSION})
     assert model_identity("h", "diffusion", "bspline", {}, TINY, ts, 0) == expected
     for change in (
         {"precision": "bf16"},

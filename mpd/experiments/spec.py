@@ -299,7 +299,7 @@ def _check_training_axis(axis: str, values: list, path) -> None:
 
 def _check_model_axis(axis: str, values: list, path) -> None:
     """A network axis names an integer ModelSpec field (widths and sizes; ``unet_dim_mults``, a list, is not an axis)
-    and each value is a positive integer."""
+    and each value is a positive integer (``goal_head_width`` takes 0 too: no goal head)."""
     from mpd.tasks.spec import ModelSpec
 
     name = axis[len(MODEL_PREFIX) :]
@@ -307,8 +307,11 @@ def _check_model_axis(axis: str, values: list, path) -> None:
     if name not in fields:
         raise ConfigError(path, f"axes.{axis}", f"unknown network field (allowed: {', '.join(fields)})")
     for v in values:
-        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-            raise ConfigError(path, f"axes.{axis}", f"{v!r} is not a positive integer")
+        least = 0 if name == "goal_head_width" else 1
+        if not isinstance(v, int) or isinstance(v, bool) or v < least:
+            raise ConfigError(
+                path, f"axes.{axis}", f"{v!r} is not a {'non-negative' if least == 0 else 'positive'} integer"
+            )
 
 
 def _task_file(entry: str, spec_path: Path | None) -> Path:

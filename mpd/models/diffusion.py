@@ -30,8 +30,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mpd.models.context import ContextEncoder
-from mpd.models.unet import TemporalUnet
+from mpd.models.context import EE_GOAL, ContextEncoder
+from mpd.models.unet import SinusoidalPosEmb, TemporalUnet, as_step_tensor
 from mpd.tasks.spec import ModelSpec
 
 N_DIFFUSION_STEPS = 100
@@ -291,6 +291,32 @@ def randint(
 
 
 # --- the model -------------------------------------------------------------------------------------------
+class GoalHead(nn.Module):
+    """A correction to the predicted noise of the last row (an end-effector-goal task's free final configuration):
+    an MLP (three hidden Mish layers of ``width``) of [that row's noisy values, a sinusoidal embedding of the step,
+    the context embedding]. Its output layer starts at zero, so an untrained head leaves the U-Net's prediction as
+    it is. Not in the paper (ModelSpec.goal_head_width)."""
+
+    def __init__(self, dof: int, context_dim: int, time_emb_dim: int, width: int):
+        super().__init__()
+        self.time_emb = SinusoidalPosEmb(time_emb_dim)
+        self.net = nn.Sequential(
+            nn.Linear(dof + time_emb_dim + context_dim, width),
+            nn.Mish(),
+            nn.Linear(width, width),
+            nn.Mish(),
+            nn.Linear(width, width),
+            nn.Mish(),
+            nn.Linear(width, dof),
+        )
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, x_last: torch.Tensor, t: torch.Tensor, context_emb: torch.Tensor) -> torch.Tensor:
+        """``(B, d)`` noisy final rows, ``(B,)`` steps, ``(B, context_dim)`` -> ``(B, d)``."""
+        return self.net(torch.cat([x_last, self.time_emb(t).to(x_last.dtype), context_emb], dim=-1))
+
+
 class DiffusionModel(nn.Module):
     """eps_theta(x_t, t, c): context encoder + temporal U-Net; inputs and outputs in normalized space."""
 
@@ -309,6 +335,14 @@ class DiffusionModel(nn.Module):
         self.schedule = get_schedule(n_diffusion_steps)
         self.context_encoder = ContextEncoder(context_kind, dof, spec.context_dim, spec.context_layers)
         self.unet = TemporalUnet(dof, spec.context_dim, spec.unet_dim, spec.unet_dim_mults, spec.time_emb_dim)
+        self.goal_head = None
+        if spec.goal_head_width:
+            if context_kind != EE_GOAL:
+                raise ValueError(
+                    f"model.goal_head_width = {spec.goal_head_width}: a goal head needs an end-effector-goal task "
+                    f"(the last row is then the free final configuration); this context is {context_kind!r}"
+                )
+            self.goal_head = GoalHead(dof, spec.context_dim, spec.time_emb_dim, spec.goal_head_width)
 
     @property
     def n_diffusion_steps(self) -> int:
@@ -316,7 +350,15 @@ class DiffusionModel(nn.Module):
 
     def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, context: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """Predicted noise. Context fields have batch 1 (shared by every sample) or the batch of ``x_t``."""
-        return self.unet(x_t, t, self.context_encoder(context))
+        emb = self.context_encoder(context)
+        eps = self.unet(x_t, t, emb)
+        if self.goal_head is None:
+            return eps
+        b = x_t.shape[0]
+        head = self.goal_head(
+            x_t[:, -1, :], as_step_tensor(t, b, x_t.device), emb.expand(b, -1) if len(emb) == 1 else emb
+        )
+        return torch.cat([eps[:, :-1], eps[:, -1:] + head[:, None].to(eps.dtype)], dim=1)
 
     def loss(
         self,

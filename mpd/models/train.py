@@ -80,6 +80,15 @@ def training_identity(ts: TrainingSpec, kind: str = "diffusion") -> dict[str, An
     return d
 
 
+def network_identity(spec: ModelSpec, kind: str = "diffusion") -> dict[str, Any]:
+    """The network spec as it enters a model's identity: ``goal_head_width`` only when a diffusion model has a goal
+    head (added after NETWORK_VERSION 2; the models without one keep their identity)."""
+    d = to_dict(spec)
+    if kind != "diffusion" or not d["goal_head_width"]:
+        del d["goal_head_width"]
+    return d
+
+
 def model_identity(
     dataset_hash: str,
     kind: str,
@@ -94,7 +103,7 @@ def model_identity(
         kind,
         parametrization,
         parametrization_settings,
-        model_spec,
+        network_identity(model_spec, kind),
         training_identity(training_spec, kind),
         seed,
         {"network_version": NETWORK_VERSION},
@@ -116,7 +125,8 @@ def trunk_identity(
     ts = to_dict(training_identity(training_spec, kind))
     ts["steps"] = ts["decay_fraction"] = None
     return stable_hash(
-        "trunk", dataset_hash, kind, parametrization, parametrization_settings, model_spec, ts, seed,
+        "trunk", dataset_hash, kind, parametrization, parametrization_settings, network_identity(model_spec, kind), ts,
+        seed,
         {"network_version": NETWORK_VERSION},
     )  # fmt: skip
 
@@ -578,6 +588,6 @@ def steps_per_second(net: nn.Module, x: torch.Tensor, context: dict[str, torch.T
 
 
 __all__ = [
-    "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity", "stable_steps",
-    "steps_per_second", "train_model", "trunk_identity",
+    "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity", "network_identity",
+    "stable_steps", "steps_per_second", "train_model", "trunk_identity",
 ]  # fmt: skip

@@ -154,6 +154,12 @@ class ModelSpec:
     context_dim: int = 32
     context_layers: int = 1
     time_emb_dim: int = 32
+    # 0 (the paper): the U-Net alone. > 0: a "goal head" beside it, an MLP of this width (mpd.models.diffusion.
+    # GoalHead) whose output is added to the predicted noise of the last row, from that row's noisy values, the step
+    # and the context embedding: end-effector-goal tasks only, where the last row is the free final configuration,
+    # a learned inverse kinematics that the U-Net learns slowly (reports/recipe-study-panda). A study option of the
+    # `cpu` profiles; the diffusion models only (the CVAE ignores it).
+    goal_head_width: int = 0
 
 
 @dataclass(frozen=True)
@@ -168,6 +174,7 @@ class ModelOverride:
     context_dim: int | None = None
     context_layers: int | None = None
     time_emb_dim: int | None = None
+    goal_head_width: int | None = None
 
     def changes(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
