@@ -373,6 +373,7 @@ def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
         ('"model.unet_dim_mults"', "[[1, 2]]", "axes.model.unet_dim_mults"),
         ('"model.width"', "[16]", "axes.model.width"),
         ('"model.goal_head_width"', "[-1]", "axes.model.goal_head_width"),
+        ('"model.context_init"', '["xavier"]', "axes.model.context_init"),
     ],
 )
 def test_bad_training_axes_name_the_axis(tmp_path, axis, values, where):

@@ -686,6 +686,44 @@ def test_goal_head_starts_as_the_unet_alone_and_corrects_only_the_last_row():
     )
 
 
+def test_he_context_init_keeps_the_context_visible_where_the_default_erases_it():
+    """The Panda's context MLPs (context_dim 128, 2 layers) on random normalized contexts: under PyTorch's default init
+    the embedding barely varies over contexts (the measurement behind ModelSpec.context_init); He init: weights of
+    std sqrt(2 / fan_in), zero biases, and an embedding that varies."""
+    from mpd.models.context import ContextEncoder
+    from mpd.models.train import model_identity
+
+    torch.manual_seed(0)
+    ctx = {
+        "q_start": torch.rand(2048, 7) * 2 - 1,
+        "ee_pos": torch.rand(2048, 3) * 2 - 1,
+        "ee_rot": torch.as_tensor(scipy.stats.special_ortho_group.rvs(3, size=2048, random_state=0)).float(),
+    }
+    spread = {}
+    for init in ("default", "he"):
+        enc = ContextEncoder("goal_ee_pose", 7, 128, 2, init)
+        with torch.no_grad():
+            spread[init] = float(enc(ctx).std(0).mean())
+        if init == "he":
+            for layer in enc.modules():
+                if isinstance(layer, torch.nn.Linear):
+                    assert float(layer.bias.abs().max()) == 0.0
+                    want = math.sqrt(2 / layer.in_features)
+                    assert abs(float(layer.weight.std()) - want) < 0.15 * want
+    assert spread["default"] < 0.01 and spread["he"] > 0.1
+    with pytest.raises(ValueError, match="context_init must be 'default' or 'he'"):
+        ContextEncoder("goal_ee_pose", 7, 16, 1, "xavier")
+    ts = tiny_training()
+    he = dataclasses.replace(TINY, context_init="he")
+    assert DiffusionModel(3, 8, "goal_ee_pose", he).context_encoder.combine[0].bias.abs().max() == 0
+    assert model_identity("h", "diffusion", "bspline", {}, he, ts, 0) != model_identity(
+        "h", "diffusion", "bspline", {}, TINY, ts, 0
+    )
+    assert model_identity("h", "cvae", "bspline", {}, he, ts, 0) == model_identity(
+        "h", "cvae", "bspline", {}, TINY, ts, 0
+    )
+
+
 def test_a_goal_head_model_trains_saves_and_loads(tmp_path):
     ee = toy_arrays(ee=True, n_val=4)
     spec = dataclasses.replace(TINY, goal_head_width=16)
@@ -778,7 +816,7 @@ def test_fields_added_to_the_training_spec_keep_older_identities():
 
     ts = TrainingSpec(batch_size=128, steps=12000, lr=1e-3, lr_schedule="cosine", warmup_steps=200)
     old_form = {k: v for k, v in to_dict(ts).items() if k not in LATER_TRAINING_FIELDS}
-    old_net = {k: v for k, v in to_dict(TINY).items() if k != "goal_head_width"}  # a later ModelSpec field
+    old_net = {k: v for k, v in to_dict(TINY).items() if k not in ("goal_head_width", "context_init")}  # later fields
     expected = stable_hash("h", "diffusion", "bspline", {}, old_net, old_form, 0, {"network_version": NETWORK_VERSION})
     assert model_identity("h", "diffusion", "bspline", {}, TINY, ts, 0) == expected
     for change in (

@@ -299,13 +299,19 @@ def _check_training_axis(axis: str, values: list, path) -> None:
 
 def _check_model_axis(axis: str, values: list, path) -> None:
     """A network axis names an integer ModelSpec field (widths and sizes; ``unet_dim_mults``, a list, is not an axis)
-    and each value is a positive integer (``goal_head_width`` takes 0 too: no goal head)."""
+    and each value is a positive integer (``goal_head_width`` takes 0 too: no goal head), or ``context_init``
+    ("default" or "he")."""
     from mpd.tasks.spec import ModelSpec
 
     name = axis[len(MODEL_PREFIX) :]
-    fields = [f.name for f in dataclasses.fields(ModelSpec) if f.type in (int, "int")]
+    fields = [f.name for f in dataclasses.fields(ModelSpec) if f.type in (int, "int")] + ["context_init"]
     if name not in fields:
         raise ConfigError(path, f"axes.{axis}", f"unknown network field (allowed: {', '.join(fields)})")
+    if name == "context_init":
+        for v in values:
+            if v not in ("default", "he"):
+                raise ConfigError(path, f"axes.{axis}", f"{v!r} is not 'default' or 'he'")
+        return
     for v in values:
         least = 0 if name == "goal_head_width" else 1
         if not isinstance(v, int) or isinstance(v, bool) or v < least:

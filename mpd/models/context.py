@@ -67,8 +67,10 @@ def mlp(in_dim: int, out_dim: int, n_layers: int, hidden_dim: int | None = None)
 class ContextEncoder(nn.Module):
     """Normalized context dict -> ``(B, context_dim)``."""
 
-    def __init__(self, kind: str, dof: int, context_dim: int, n_layers: int = 1):
+    def __init__(self, kind: str, dof: int, context_dim: int, n_layers: int = 1, init: str = "default"):
         super().__init__()
+        if init not in ("default", "he"):
+            raise ValueError(f"model.context_init must be 'default' or 'he', got {init!r}")
         self.kind = kind
         self.dof = dof
         self.keys = context_keys(kind)
@@ -83,6 +85,11 @@ class ContextEncoder(nn.Module):
             self.ee_pose = mlp(3 + 9, context_dim, n_layers)
             combined_in = 2 * context_dim
         self.combine = mlp(combined_in, context_dim, 1)
+        if init == "he":  # ModelSpec.context_init
+            for layer in self.modules():
+                if isinstance(layer, nn.Linear):
+                    nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+                    nn.init.zeros_(layer.bias)
 
     def check(self, context: Mapping[str, torch.Tensor]) -> int:
         """Validate fields and shapes; return the batch size."""

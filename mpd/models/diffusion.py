@@ -333,7 +333,9 @@ class DiffusionModel(nn.Module):
         self.horizon = horizon
         self.context_kind = context_kind
         self.schedule = get_schedule(n_diffusion_steps)
-        self.context_encoder = ContextEncoder(context_kind, dof, spec.context_dim, spec.context_layers)
+        self.context_encoder = ContextEncoder(
+            context_kind, dof, spec.context_dim, spec.context_layers, spec.context_init
+        )
         self.unet = TemporalUnet(dof, spec.context_dim, spec.unet_dim, spec.unet_dim_mults, spec.time_emb_dim)
         self.goal_head = None
         if spec.goal_head_width:

@@ -81,11 +81,14 @@ def training_identity(ts: TrainingSpec, kind: str = "diffusion") -> dict[str, An
 
 
 def network_identity(spec: ModelSpec, kind: str = "diffusion") -> dict[str, Any]:
-    """The network spec as it enters a model's identity: ``goal_head_width`` only when a diffusion model has a goal
-    head (added after NETWORK_VERSION 2; the models without one keep their identity)."""
+    """The network spec as it enters a model's identity: ``goal_head_width`` and ``context_init`` (added after
+    NETWORK_VERSION 2) only where a diffusion model departs from their defaults, so the models before them keep
+    their identity; a CVAE uses neither."""
     d = to_dict(spec)
-    if kind != "diffusion" or not d["goal_head_width"]:
-        del d["goal_head_width"]
+    defaults = to_dict(ModelSpec())
+    for name in ("goal_head_width", "context_init"):
+        if kind != "diffusion" or d[name] == defaults[name]:
+            del d[name]
     return d
 
 

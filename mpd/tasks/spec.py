@@ -160,6 +160,12 @@ class ModelSpec:
     # a learned inverse kinematics that the U-Net learns slowly (reports/recipe-study-panda). A study option of the
     # `cpu` profiles; the diffusion models only (the CVAE ignores it).
     goal_head_width: int = 0
+    # initialization of the context MLPs' linear layers: "default" is PyTorch's (the authors'), under which the
+    # context embedding's spread over contexts at initialization is ~0.002 after the MLPs' six ReLU layers (vs ~0.04
+    # mean magnitude), so a short training hardly sees the goal (reports/recipe-study-panda); "he": He / Kaiming
+    # normal weights (fan-in, ReLU gain) and zero biases, a spread of ~0.5. Diffusion models only (the CVAE ignores
+    # it); a study option of the `cpu` profiles.
+    context_init: Literal["default", "he"] = "default"
 
 
 @dataclass(frozen=True)
@@ -175,6 +181,7 @@ class ModelOverride:
     context_layers: int | None = None
     time_emb_dim: int | None = None
     goal_head_width: int | None = None
+    context_init: Literal["default", "he"] | None = None
 
     def changes(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
@@ -267,5 +274,9 @@ class TaskSpec:
             if not override.changes():
                 raise ConfigError(None, where, "empty: give the network sizes that differ from [model]")
             for name, v in override.changes().items():
+                if name == "context_init":
+                    if v not in ("default", "he"):
+                        raise ConfigError(None, f"{where}.{name}", f"must be 'default' or 'he', got {v!r}")
+                    continue
                 if any(x < 1 for x in (v if isinstance(v, list) else [v])) or v == []:
                     raise ConfigError(None, f"{where}.{name}", f"must be positive, got {v!r}")

@@ -5,11 +5,13 @@ row and the other rows (2048 validation samples, 4 seeds of t and noise), so a m
 from its validity (the results tables' EE errors are over valid samples only).
 
 Usage: MPD_CACHE=... python goal_reach.py TASK DATASET MODEL_PT [MODEL_PT ...]
+(MPD_GOAL_REACH_SAMPLER=ddpm: all 100 DDPM steps instead, the probe's sampler)
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 
 import numpy as np
@@ -47,7 +49,8 @@ def main(task_name: str, dataset: str, model_paths: list[str]) -> None:
     n_ctx, n_per = 200, 10
     goal_pos = torch.as_tensor(arr.context["ee_pos"][val[:n_ctx]]).double().repeat_interleave(n_per, 0)
     goal_rot = torch.as_tensor(arr.context["ee_rot"][val[:n_ctx]]).double().repeat_interleave(n_per, 0)
-    print(f"{task_name}: {n_ctx} validation contexts x {n_per} unguided samples (DDIM 15); loss on 2048 samples")
+    sampler = os.environ.get("MPD_GOAL_REACH_SAMPLER", "ddim")
+    print(f"{task_name}: {n_ctx} validation contexts x {n_per} unguided samples ({sampler}); loss on 2048 samples")
     print(
         "| model | steps | goal_row_weight | EE position error, median [cm] | best of 10 [cm] | rotation, median [deg]"
         " | val loss, final row | val loss, other rows |"
@@ -58,7 +61,7 @@ def main(task_name: str, dataset: str, model_paths: list[str]) -> None:
         net = m.network.eval()
         data = _to_device(arr, val[:2048], m.x_normalizer, m.context_normalizers, torch.device("cpu"))
         ctx = {k: v[:n_ctx].repeat_interleave(n_per, 0) for k, v in data.context.items()}
-        x = diffusion_sample(net, ctx, n_ctx * n_per, generator=torch.Generator().manual_seed(2))
+        x = diffusion_sample(net, ctx, n_ctx * n_per, sampler=sampler, generator=torch.Generator().manual_seed(2))
         q = m.x_normalizer.unnormalize(x)[:, -1, :].double()
         ep, er = pose_errors(task.robot, q, goal_pos, goal_rot)
         ep, er = ep.reshape(-1, n_per), er.reshape(-1, n_per)
