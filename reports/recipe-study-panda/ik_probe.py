@@ -9,9 +9,11 @@ the goal pose on held-out (validation) contexts, after each budget of steps. If 
 quickly, the U-Net prior is slow for its own reasons (its size, its conditioning path, its loss spread over 32
 rows); if it is slow too, the map itself is what takes the training.
 
-Usage: MPD_CACHE=... python ik_probe.py [TASK] [DATASET] [STEPS,STEPS,...] [WIDTH] [film]
+Usage: MPD_CACHE=... python ik_probe.py [TASK] [DATASET] [STEPS,STEPS,...] [WIDTH] [film|encoder|encoder-he]
 (defaults: EnvSpheres3D-RobotPanda EnvSpheres3D-RobotPanda-cpu 1000,3000,10000,30000 256; ``film``: the context enters
-only through FiLM of the hidden layers, as in the U-Net, instead of being concatenated to the input)
+only through FiLM of the hidden layers, as in the U-Net, instead of being concatenated to the input; ``encoder``: the
+context is first embedded by the priors' own context MLPs (mpd.models.context.ContextEncoder, the Panda's sizes:
+128 wide, 2 layers, trained with the probe), ``encoder-he`` the same with ModelSpec.context_init = "he")
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import torch
 from torch import nn
 
 from mpd.data.dataset import load_dataset
+from mpd.models.context import ContextEncoder
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, fit_normalizers, training_arrays
 from mpd.models.diffusion import ddpm_step, get_schedule, q_sample
 from mpd.models.unet import SinusoidalPosEmb
@@ -74,6 +77,22 @@ class FilmDenoiser(nn.Module):
         return self.out(h)
 
 
+class EncoderDenoiser(nn.Module):
+    """The concatenating MLP, with the context embedded by the priors' ContextEncoder first (from the flat context:
+    q_start, goal position, flattened goal rotation)."""
+
+    def __init__(self, dof: int, ctx_dim: int, width: int, init: str):
+        super().__init__()
+        self.dof = dof
+        self.encoder = ContextEncoder("goal_ee_pose", dof, 128, 2, init)
+        self.denoiser = Denoiser(dof, 128, width)
+
+    def forward(self, x_t: torch.Tensor, t: torch.Tensor, ctx: torch.Tensor) -> torch.Tensor:
+        d = self.dof
+        fields = {"q_start": ctx[:, :d], "ee_pos": ctx[:, d : d + 3], "ee_rot": ctx[:, d + 3 :].reshape(-1, 3, 3)}
+        return self.denoiser(x_t, t, self.encoder(fields))
+
+
 @torch.no_grad()
 def sample(net: nn.Module, ctx: torch.Tensor, n_per: int, dof: int, seed: int) -> torch.Tensor:
     """DDPM, all 100 steps (the sampler is not what this probe measures)."""
@@ -87,7 +106,7 @@ def sample(net: nn.Module, ctx: torch.Tensor, n_per: int, dof: int, seed: int) -
     return x
 
 
-def main(task_name: str, dataset: str, budgets: list[int], width: int, film: bool = False) -> None:
+def main(task_name: str, dataset: str, budgets: list[int], width: int, mode: str = "concat") -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
     task, ds = load_task(task_name), load_dataset(dataset)
@@ -106,7 +125,12 @@ def main(task_name: str, dataset: str, budgets: list[int], width: int, film: boo
     tr, va = np.flatnonzero(arr.split == SPLIT_TRAIN), np.flatnonzero(arr.split == SPLIT_VAL)[:200]
     y_tr, c_tr = y[tr].float(), ctx[tr]
     dof = y.shape[1]
-    net = (FilmDenoiser if film else Denoiser)(dof, ctx.shape[1], width)
+    if mode in ("encoder", "encoder-he"):
+        net = EncoderDenoiser(dof, ctx.shape[1], width, "he" if mode == "encoder-he" else "default")
+    elif mode in ("film", "concat"):
+        net = (FilmDenoiser if mode == "film" else Denoiser)(dof, ctx.shape[1], width)
+    else:
+        raise ValueError(f"unknown mode {mode!r} (concat, film, encoder, encoder-he)")
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     sch, g = get_schedule(), torch.Generator().manual_seed(1)
     goal_pos = torch.as_tensor(arr.context["ee_pos"][va]).double()
@@ -114,7 +138,7 @@ def main(task_name: str, dataset: str, budgets: list[int], width: int, film: boo
     n_per = 10
     print(
         f"{task_name}: {len(tr)} training rows, {len(va)} validation contexts x {n_per} samples, width {width}"
-        f", context {'through FiLM only' if film else 'concatenated to the input'}"
+        f", context: {mode}"
     )
     print("| steps | train [s] | loss | EE position error, median [cm] | best of 10 [cm] | rotation, median [deg] |")
     print("| ---: | ---: | ---: | ---: | ---: | ---: |")
@@ -150,5 +174,5 @@ if __name__ == "__main__":
         a[1] if len(a) > 1 else "EnvSpheres3D-RobotPanda-cpu",
         [int(s) for s in (a[2] if len(a) > 2 else "1000,3000,10000,30000").split(",")],
         int(a[3]) if len(a) > 3 else 256,
-        film=len(a) > 4 and a[4] == "film",
+        a[4] if len(a) > 4 else "concat",
     )
