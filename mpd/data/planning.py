@@ -261,10 +261,16 @@ class JointSpacePlanner:
         return space, ss, si, mv
 
     # -- one problem ---------------------------------------------------------------------------------------
+    def _onto_bounds(self, q: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+        """``q`` with the values within ``tol`` outside a bound moved onto it (larger excesses are kept)."""
+        q = np.where((q < self.lo) & (q >= self.lo - tol), self.lo, q)
+        return np.where((q > self.hi) & (q <= self.hi + tol), self.hi, q)
+
     def plan(self, q_start: np.ndarray, q_goal: np.ndarray, seed: int) -> PlanResult:
         t0 = time.perf_counter()
-        q_start = np.asarray(q_start, dtype=np.float64)
-        q_goal = np.asarray(q_goal, dtype=np.float64)
+        # a configuration on a joint limit that went through float32 (the contexts' tensors) lies just outside the
+        # float64 bounds, which OMPL rejects, searching to its time limit: rounding-sized excesses go onto the bound
+        q_start, q_goal = (self._onto_bounds(np.asarray(q, dtype=np.float64)) for q in (q_start, q_goal))
         ends = self.checker.valid(np.stack([q_start, q_goal]))
         if not ends[0] or not ends[1]:
             status = "invalid_start" if not ends[0] else "invalid_goal"
