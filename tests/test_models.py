@@ -711,7 +711,18 @@ def test_he_context_init_keeps_the_context_visible_where_the_default_erases_it()
                     want = math.sqrt(2 / layer.in_features)
                     assert abs(float(layer.weight.std()) - want) < 0.15 * want
     assert spread["default"] < 0.01 and spread["he"] > 0.1
-    with pytest.raises(ValueError, match="context_init must be 'default' or 'he'"):
+    # he-zero: He init, then the combining MLP's output weights at zero: the embedding is the (zero) bias for every
+    # context while the hidden layer before it varies as under He, so the output layer's gradient is not zero
+    torch.manual_seed(0)
+    enc = ContextEncoder("goal_ee_pose", 7, 128, 2, "he-zero")
+    hidden = enc.combine[:-1]
+    with torch.no_grad():
+        pose = torch.cat([ctx["ee_pos"], ctx["ee_rot"].flatten(1)], -1)
+        h = hidden(torch.cat([enc.joints(ctx["q_start"]), enc.ee_pose(pose)], -1))
+        assert float(enc(ctx).abs().max()) == 0.0 and float(h.std(0).mean()) > 0.1
+    (enc(ctx) * torch.randn(2048, 128, generator=torch.Generator().manual_seed(1))).sum().backward()
+    assert float(enc.combine[-1].weight.grad.abs().max()) > 0.1
+    with pytest.raises(ValueError, match="context_init must be one of 'default', 'he', 'he-zero'"):
         ContextEncoder("goal_ee_pose", 7, 16, 1, "xavier")
     ts = tiny_training()
     he = dataclasses.replace(TINY, context_init="he")

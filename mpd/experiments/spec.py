@@ -300,8 +300,8 @@ def _check_training_axis(axis: str, values: list, path) -> None:
 def _check_model_axis(axis: str, values: list, path) -> None:
     """A network axis names an integer ModelSpec field (widths and sizes; ``unet_dim_mults``, a list, is not an axis)
     and each value is a positive integer (``goal_head_width`` takes 0 too: no goal head), or ``context_init``
-    ("default" or "he")."""
-    from mpd.tasks.spec import ModelSpec
+    (one of ``mpd.tasks.spec.CONTEXT_INITS``)."""
+    from mpd.tasks.spec import CONTEXT_INITS, ModelSpec
 
     name = axis[len(MODEL_PREFIX) :]
     fields = [f.name for f in dataclasses.fields(ModelSpec) if f.type in (int, "int")] + ["context_init"]
@@ -309,8 +309,8 @@ def _check_model_axis(axis: str, values: list, path) -> None:
         raise ConfigError(path, f"axes.{axis}", f"unknown network field (allowed: {', '.join(fields)})")
     if name == "context_init":
         for v in values:
-            if v not in ("default", "he"):
-                raise ConfigError(path, f"axes.{axis}", f"{v!r} is not 'default' or 'he'")
+            if v not in CONTEXT_INITS:
+                raise ConfigError(path, f"axes.{axis}", f"{v!r} is not one of {', '.join(CONTEXT_INITS)}")
         return
     for v in values:
         least = 0 if name == "goal_head_width" else 1

@@ -15,6 +15,8 @@ from collections.abc import Mapping
 import torch
 from torch import nn
 
+from mpd.tasks.spec import CONTEXT_INITS
+
 JOINT_GOAL = "goal_joint_position"
 EE_GOAL = "goal_ee_pose"
 CONTEXT_KINDS = (JOINT_GOAL, EE_GOAL)
@@ -69,8 +71,8 @@ class ContextEncoder(nn.Module):
 
     def __init__(self, kind: str, dof: int, context_dim: int, n_layers: int = 1, init: str = "default"):
         super().__init__()
-        if init not in ("default", "he"):
-            raise ValueError(f"model.context_init must be 'default' or 'he', got {init!r}")
+        if init not in CONTEXT_INITS:
+            raise ValueError(f"model.context_init must be one of {', '.join(map(repr, CONTEXT_INITS))}, got {init!r}")
         self.kind = kind
         self.dof = dof
         self.keys = context_keys(kind)
@@ -85,11 +87,13 @@ class ContextEncoder(nn.Module):
             self.ee_pose = mlp(3 + 9, context_dim, n_layers)
             combined_in = 2 * context_dim
         self.combine = mlp(combined_in, context_dim, 1)
-        if init == "he":  # ModelSpec.context_init
+        if init in ("he", "he-zero"):  # ModelSpec.context_init
             for layer in self.modules():
                 if isinstance(layer, nn.Linear):
                     nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
                     nn.init.zeros_(layer.bias)
+        if init == "he-zero":  # the embedding starts at 0: the U-Net's FiLM layers see no context until it is learned
+            nn.init.zeros_(self.combine[-1].weight)
 
     def check(self, context: Mapping[str, torch.Tensor]) -> int:
         """Validate fields and shapes; return the batch size."""

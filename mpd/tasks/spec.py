@@ -147,6 +147,10 @@ class InferenceSpec:
     guide_fraction: float = 0.3
 
 
+# initializations of the context MLPs (ModelSpec.context_init); "default" is PyTorch's, the authors'
+CONTEXT_INITS = ("default", "he", "he-zero")
+
+
 @dataclass(frozen=True)
 class ModelSpec:
     unet_dim: int = 32
@@ -163,9 +167,11 @@ class ModelSpec:
     # initialization of the context MLPs' linear layers: "default" is PyTorch's (the authors'), under which the
     # context embedding's spread over contexts at initialization is ~0.002 after the MLPs' six ReLU layers (vs ~0.04
     # mean magnitude), so a short training hardly sees the goal (reports/recipe-study-panda); "he": He / Kaiming
-    # normal weights (fan-in, ReLU gain) and zero biases, a spread of ~0.5. Diffusion models only (the CVAE ignores
-    # it); a study option of the `cpu` profiles.
-    context_init: Literal["default", "he"] = "default"
+    # normal weights (fan-in, ReLU gain) and zero biases, a spread of ~0.5; "he-zero": the same with the output layer
+    # of the combining MLP at zero, so the embedding starts at 0 while the hidden layers carry the context (He alone
+    # stalled the U-Net's training, reports/recipe-study-panda-goal). Diffusion models only (the CVAE ignores it); a
+    # study option of the `cpu` profiles.
+    context_init: Literal["default", "he", "he-zero"] = "default"
 
 
 @dataclass(frozen=True)
@@ -181,7 +187,7 @@ class ModelOverride:
     context_layers: int | None = None
     time_emb_dim: int | None = None
     goal_head_width: int | None = None
-    context_init: Literal["default", "he"] | None = None
+    context_init: Literal["default", "he", "he-zero"] | None = None
 
     def changes(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
@@ -275,8 +281,8 @@ class TaskSpec:
                 raise ConfigError(None, where, "empty: give the network sizes that differ from [model]")
             for name, v in override.changes().items():
                 if name == "context_init":
-                    if v not in ("default", "he"):
-                        raise ConfigError(None, f"{where}.{name}", f"must be 'default' or 'he', got {v!r}")
+                    if v not in CONTEXT_INITS:
+                        raise ConfigError(None, f"{where}.{name}", f"must be one of {CONTEXT_INITS}, got {v!r}")
                     continue
                 if any(x < 1 for x in (v if isinstance(v, list) else [v])) or v == []:
                     raise ConfigError(None, f"{where}.{name}", f"must be positive, got {v!r}")
