@@ -91,6 +91,7 @@ def write_spec(root: Path, name: str, body: str = "", dataset: str = "tiny0", n_
         ("[axes]\nwidth = [1]\n", "axes.width"),
         ('[axes]\n"planner.guide_rate" = [1.0]\n', "axes.planner.guide_rate"),
         ("[axes]\nn_samples = [0]\n", "axes.n_samples"),
+        ('[task]\ncontexts = "sampled"\nturn_contexts = true\n', f"tasks.{TASK}.turn_contexts"),
     ],
 )
 def test_spec_errors_name_file_and_key(tmp_path, edit, where):
@@ -100,7 +101,10 @@ def test_spec_errors_name_file_and_key(tmp_path, edit, where):
     }
     axes = {"task": f'["{TASK}"]', "method": '["gp-cost"]'}
     top = dict(base)
-    if edit.startswith("[axes]"):
+    task_lines = ""
+    if edit.startswith("[task]"):  # lines of the task's table
+        task_lines = edit[len("[task]\n") :]
+    elif edit.startswith("[axes]"):
         for line in edit.splitlines()[1:]:
             k, v = line.split(" = ")
             axes[k] = v
@@ -109,7 +113,7 @@ def test_spec_errors_name_file_and_key(tmp_path, edit, where):
         top[k] = v
     text = "\n".join(f"{k} = {v}" for k, v in top.items()) + "\n[axes]\n"
     text += "\n".join(f"{k} = {v}" for k, v in axes.items())
-    text += f'\n[tasks."{TASK}"]\ndataset = "x"\n'
+    text += f'\n[tasks."{TASK}"]\ndataset = "x"\n' + task_lines
     p = tmp_path / "bad.toml"
     p.write_text(text)
     with pytest.raises(ConfigError) as e:
@@ -359,6 +363,31 @@ def test_held_out_contexts_are_the_datasets_and_skipped_per_scene(work):
         ec.load_context_file(bad)
     with pytest.raises(ValueError, match="usable held-out contexts"):
         ec.task_contexts(task, ds, 1000)
+
+
+def test_turned_contexts_turn_with_the_scene(work):
+    """turn_contexts: in a rotated scene each context is its training-scene context turned about the base (start and
+    goal by turn_configurations), those leaving the joint limits skipped and counted; without it the contexts stay."""
+    import numpy as np
+    import torch
+
+    from mpd.data import eval_contexts as ec
+    from mpd.data.dataset import load_dataset
+    from mpd.tasks import load_task
+
+    task = load_task(TASK)
+    base = ec.task_contexts(task, load_dataset(work / "tiny0.toml"), 6, seed=0)
+    turned = ec.for_scene(base, task, False, 40.0, turn=True)
+    fixed = ec.for_scene(base, task, False, 40.0)
+    assert turned.meta["turned"] and "turned" not in fixed.meta and turned.hash != fixed.hash
+    inside = task.robot.within_limits(torch.as_tensor(ec.turn_configurations(task, base.q_start, 40.0)))
+    inside &= task.robot.within_limits(torch.as_tensor(ec.turn_configurations(task, base.q_goal, 40.0)))
+    assert turned.meta["n_outside_limits"] == int((~inside).sum())
+    for j, i in enumerate(turned.index):
+        k = int(np.flatnonzero(base.index == i)[0])
+        want = ec.turn_configurations(task, base.q_start[k : k + 1], 40.0)[0]
+        assert np.allclose(turned.q_start[j], want) and not np.allclose(turned.q_start[j], base.q_start[k])
+    assert np.array_equal(ec.for_scene(base, task, False, 0.0, turn=True).q_start, base.q_start)
 
 
 # ------------------------------------------------------------------------------------------ training axes

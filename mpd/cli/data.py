@@ -162,10 +162,13 @@ def measure(task_name: str, n: int) -> None:
 @click.option("--seed", "context_seed", type=int, default=0, show_default=True, help="The context seed.")
 @click.option("--extra-objects", is_flag=True, help="The scene with the extra objects (invalid contexts skipped).")
 @click.option("--rotation", type=float, default=0.0, show_default=True, help="Scene rotation about z (deg).")
+@click.option("--turn", is_flag=True, help="held-out: turn the contexts with a rotated scene (a spec's turn_contexts).")
 @click.option("--export", "export", type=click.Path(dir_okay=False), default=None, help="Write the set (.npz or .csv).")
 @click.option("--list", "list_files", is_flag=True, help="List the stored context files (of TASK_NAME, if given).")
 @click.option("--refresh", is_flag=True, help="sampled: recompute instead of reading the cache.")
-def contexts(task_name, n, source, dataset, context_seed, extra_objects, rotation, export, list_files, refresh) -> None:
+def contexts(
+    task_name, n, source, dataset, context_seed, extra_objects, rotation, turn, export, list_files, refresh
+) -> None:
     """The evaluation contexts of a task in a scene (mpd.data.eval_contexts): build, show, list, export."""
     import numpy as np
 
@@ -194,7 +197,7 @@ def contexts(task_name, n, source, dataset, context_seed, extra_objects, rotatio
 
         ds = load_dataset(dataset or default_dataset(task.name), generate_missing=False)
         try:
-            cs = ec.for_scene(ec.task_contexts(task, ds, n, context_seed), task, extra_objects, rotation)
+            cs = ec.for_scene(ec.task_contexts(task, ds, n, context_seed), task, extra_objects, rotation, turn=turn)
         except ValueError as e:
             raise click.ClickException(str(e)) from None
     else:

@@ -182,16 +182,83 @@ def task_contexts(task: Task, dataset, n: int, seed: int = 0) -> ContextSet:
     )
 
 
-def for_scene(base: ContextSet, task: Task, extra_objects: bool, rotation_deg: float = 0.0) -> ContextSet:
-    """The task's contexts that are valid in a scene (start and goal, with the clearance); the others are skipped."""
+def turn_configurations(task: Task, q: np.ndarray, rotation_deg: float) -> np.ndarray:
+    """The configurations that place the robot as ``q`` does, turned about the base's z axis by ``rotation_deg``
+    (every collision sphere at R_z q's): the first joint turned when it is a rotation about the base z axis (the
+    Panda, the planar arms), the position turned for a point robot. Checked on the sphere centres; a robot that is
+    neither is refused by name. The result may leave the joint limits (see :func:`for_scene`)."""
+    import torch
+
+    from mpd.envs.primitives import rot_z
+
+    robot, dim = task.robot, task.robot.task_dim
+    rz = rot_z(rotation_deg, dim)
+
+    def position(x: np.ndarray) -> np.ndarray:
+        return x @ rz.T
+
+    def first_joint(x: np.ndarray) -> np.ndarray:
+        out = x.copy()
+        out[:, 0] += np.deg2rad(rotation_deg)
+        return out
+
+    rules = ([position] if robot.dof == dim else []) + [first_joint]
+    probe = robot.random_q(16, torch.Generator().manual_seed(0)).numpy()
+    want = robot.sphere_centres(torch.as_tensor(probe)).numpy() @ rz.T
+    for rule in rules:
+        if np.allclose(robot.sphere_centres(torch.as_tensor(rule(probe))).numpy(), want, atol=1e-6):
+            return rule(np.asarray(q, dtype=np.float64))
+    raise ValueError(
+        f"{task.name}: robot {robot.name} cannot turn its contexts with the scene (neither its first joint nor its "
+        "position turns it about the base z axis): set turn_contexts = false"
+    )
+
+
+def _turned(base: ContextSet, task: Task, rotation_deg: float) -> dict[str, np.ndarray]:
+    from mpd.envs.primitives import rot_z
+
+    arrays = base.arrays()
+    arrays["q_start"] = turn_configurations(task, base.q_start, rotation_deg).astype(base.q_start.dtype)
+    arrays["q_goal"] = turn_configurations(task, base.q_goal, rotation_deg).astype(base.q_goal.dtype)
+    if base.ee_pos is not None:
+        r = rot_z(rotation_deg, 3)
+        arrays["ee_pos"] = base.ee_pos @ r.T.astype(base.ee_pos.dtype)
+        arrays["ee_rot"] = (r.astype(base.ee_rot.dtype) @ base.ee_rot).astype(base.ee_rot.dtype)
+    return arrays
+
+
+def for_scene(
+    base: ContextSet, task: Task, extra_objects: bool, rotation_deg: float = 0.0, turn: bool = False
+) -> ContextSet:
+    """The task's contexts that are valid in a scene (start and goal, with the clearance); the others are skipped.
+
+    ``turn`` (a spec's ``turn_contexts``): in a rotated scene, the contexts turn with it (start and goal configurations
+    by :func:`turn_configurations`, the goal pose by the same rotation), so each is its training-scene problem turned
+    about the base, and only a change of the prior's inputs remains; a context whose turned start or goal leaves the
+    joint limits is skipped. Without it (the default) the contexts stay where they are and the obstacles turn."""
     scene = scene_name(extra_objects, rotation_deg)
+    turned = bool(turn and rotation_deg)
+    arrays = _turned(base, task, rotation_deg) if turned else base.arrays()
     if not extra_objects and not rotation_deg:
         keep = np.ones(len(base), dtype=bool)
     else:
-        keep = _ends_valid(task, base.q_start, base.q_goal, extra_objects, rotation_deg)
-    arrays = {k: v[keep] for k, v in base.arrays().items()}
+        keep = _ends_valid(task, arrays["q_start"], arrays["q_goal"], extra_objects, rotation_deg)
+    n_out = 0
+    if turned:
+        import torch
+
+        inside = (
+            task.robot.within_limits(torch.as_tensor(arrays["q_start"])).numpy()
+            & task.robot.within_limits(torch.as_tensor(arrays["q_goal"])).numpy()
+        )
+        n_out = int((~inside).sum())
+        keep &= inside
+    arrays = {k: v[keep] for k, v in arrays.items()}
     meta = dict(base.meta, scene=scene, n_contexts=int(keep.sum()), n_skipped=int((~keep).sum()))
     meta["skipped_index"] = base.index[~keep].tolist()
+    if turned:
+        meta["turned"] = True
+        meta["n_outside_limits"] = n_out
     return finalize(ContextSet.from_arrays(task.name, scene, arrays, meta))
 
 

@@ -317,7 +317,7 @@ def resolve(
         )
         if ts.contexts == "held-out":
             base = ec.task_contexts(task, data, n_ctx, spec.data.context_seed)
-            contexts = {ec.scene_name(*sc): ec.for_scene(base, task, *sc) for sc in scenes}
+            contexts = {ec.scene_name(*sc): ec.for_scene(base, task, *sc, turn=ts.turn_contexts) for sc in scenes}
         else:
             contexts = {ec.scene_name(*sc): ec.sampled_contexts(task, n_ctx, *sc) for sc in scenes}
         out[task_name] = TaskArtifacts(

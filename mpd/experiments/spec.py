@@ -79,6 +79,10 @@ class TaskSettings:
     # where the evaluation contexts come from (mpd.data.eval_contexts): "held-out" (the dataset's held-out paths,
     # as the authors; the default) or "sampled" (mpd's earlier dataset-independent contexts)
     contexts: str = "held-out"
+    # in a rotated scene (a rotation_deg axis), turn the contexts with the obstacles (each context is then its
+    # training-scene problem turned about the base: mpd.data.eval_contexts.for_scene); false (the default): the
+    # contexts stay where they are and only the obstacles turn. Held-out contexts only.
+    turn_contexts: bool = False
     # set by --scale (scale_spec), not in spec files: the dataset's contexts are multiplied by it (mpd.data, a
     # definition of its own with its own identity, never the full-size one)
     dataset_scale: float | None = None
@@ -369,6 +373,9 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
             )
         if ts.contexts not in ("held-out", "sampled"):
             raise ConfigError(path, f"tasks.{key}.contexts", f"{ts.contexts!r} is not one of: 'held-out', 'sampled'")
+        if ts.turn_contexts and ts.contexts != "held-out":
+            why = "turns held-out contexts only (contexts = 'held-out')"
+            raise ConfigError(path, f"tasks.{key}.turn_contexts", why)
         near = Path(path).parent / ts.dataset if path is not None else None
         if near is not None and not Path(ts.dataset).is_absolute() and near.is_file():
             ts = dataclasses.replace(ts, dataset=str(near.resolve()))  # a definition next to the spec
