@@ -32,8 +32,8 @@ def main(path: Path) -> None:
     colors = ["#0b8a6f" if kind == "bspline" else "#7a5195" for kind, *_ in rows]
     fig, ax = plt.subplots(figsize=(6.4, 3.4), dpi=200)
     ax.bar(range(len(rows)), med, color=colors, yerr=[lo, hi], capsize=3)
-    for i, m in enumerate(med):
-        ax.text(i, m, f"{m:.1f} s", ha="center", va="bottom", fontsize=8)
+    for i, (m, up) in enumerate(zip(med, hi, strict=True)):
+        ax.text(i, m + up, f"{m:.1f} s", ha="center", va="bottom", fontsize=8)
     ax.set_xticks(range(len(rows)), labels, fontsize=8)
     ax.set_ylabel("time [s], median (min-max)")
     info = bench[0]["extra_info"]
