@@ -87,3 +87,21 @@ def test_bad_input():
         scene.draw_paths_figure(t, t.env(), d.q, valid[:3])
     with pytest.raises(ValueError, match="at least one"):
         scene.denoising_figure(t, t.env(), [])
+
+
+def test_many_samples_keep_the_trajectory_pdf_small(tmp_path):
+    """A batch of 1000 (the batch-size experiments) once wrote an 11 MB PDF: above RASTER_ABOVE samples the
+    joint-space lines are drawn as an image inside the PDF; few samples stay vector lines."""
+    from matplotlib.collections import LineCollection
+
+    t = load_task("EnvPlanar2Link-RobotPlanar2Link")
+    for n, rasterized in ((8, False), (scene.RASTER_ABOVE + 1, True)):
+        d, valid = _batch(t, n)
+        out = tmp_path / f"traj{n}.pdf"
+        fig = scene.trajectory_figure(t, t.env(), d.q, d.dq_dt, d.ddq_dt2, valid, out=out)
+        joint = [c for ax in fig.axes[1:] for c in ax.collections if isinstance(c, LineCollection)]
+        assert joint and all(c.get_rasterized() == rasterized for c in joint)
+    d, valid = _batch(t, 1000)
+    out = tmp_path / "traj1000.pdf"
+    scene.trajectory_figure(t, t.env(), d.q, d.dq_dt, d.ddq_dt2, valid, out=out)
+    assert out.stat().st_size < 1_000_000  # 2.2 MB with vector lines, 0.1 MB rasterized

@@ -448,6 +448,9 @@ def _unit(task, j: int) -> str:
     return "rad" if task.robot.chain.revolute[j] else "m"
 
 
+RASTER_ABOVE = 100  # samples per figure above which the joint-space lines are drawn as an image in vector formats
+
+
 def trajectory_figure(task, env, q, dq, ddq, valid, out: str | Path | None = None, title: str | None = None) -> Figure:
     """One context: task space (left) and joint position / velocity / acceleration against time (right), one
     line per sample and joint, dashed joint limits. q, dq, ddq: (B, n, dof) in time units."""
@@ -479,7 +482,11 @@ def trajectory_figure(task, env, q, dq, ddq, valid, out: str | Path | None = Non
                 ax = fig.add_subplot(gs[r, j + 1], sharex=first)
                 first = first or ax
                 segs = np.stack([np.broadcast_to(t, (B, n)), data[:, :, j]], -1)[order]
-                ax.add_collection(LineCollection(list(segs), colors=colors, linewidths=0.8, alpha=0.75))
+                # many samples (a batch of 1000: 21,000 lines) rasterized, or a PDF grows past 10 MB
+                lines = LineCollection(
+                    list(segs), colors=colors, linewidths=0.8, alpha=0.75, rasterized=B > RASTER_ABOVE
+                )
+                ax.add_collection(lines)
                 lo, hi = float(data[:, :, j].min()), float(data[:, :, j].max())
                 if limits[r] is not None:
                     for lim in (limits[r][0][j], limits[r][1][j]):
