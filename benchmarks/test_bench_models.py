@@ -158,24 +158,3 @@ def test_training_steps_per_s_by_precision(benchmark, threads, case, precision):
         f"({100 * flops / 1e9 / median / peak:.0f} % of the nominal {precision} peak)"
     )
     assert torch.isfinite(loss)
-
-
-# --- Mish: PyTorch's CPU kernel against the one-exponential formula (mpd.models.activations) -----------------------
-@pytest.mark.parametrize("impl", ["torch", "mpd"])
-@pytest.mark.parametrize("shape", [(100, 128, 4), (100, 32, 24), (100, 256, 3)], ids=lambda s: "x".join(map(str, s)))
-def test_mish(benchmark, impl, shape):
-    """One Mish over a U-Net activation of a batch of 100 (the shapes of the 2-D and Panda networks), 1 thread."""
-    from torch.nn import functional as F
-
-    from mpd.models.activations import mish
-
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    x = torch.randn(shape, generator=torch.Generator().manual_seed(0)) * 3
-    f = F.mish if impl == "torch" else mish
-    try:
-        out = benchmark.pedantic(f, args=(x,), rounds=200, warmup_rounds=5)
-    finally:
-        torch.set_num_threads(old)
-    benchmark.extra_info.update(elements=x.numel(), ns_per_element=1e9 * benchmark.stats.stats.median / x.numel())
-    assert out.shape == x.shape

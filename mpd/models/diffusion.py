@@ -30,7 +30,6 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mpd.models.activations import Mish
 from mpd.models.context import EE_GOAL, ContextEncoder
 from mpd.models.unet import SinusoidalPosEmb, TemporalUnet, as_step_tensor
 from mpd.tasks.spec import ModelSpec
@@ -303,11 +302,11 @@ class GoalHead(nn.Module):
         self.time_emb = SinusoidalPosEmb(time_emb_dim)
         self.net = nn.Sequential(
             nn.Linear(dof + time_emb_dim + context_dim, width),
-            Mish(),
+            nn.Mish(),
             nn.Linear(width, width),
-            Mish(),
+            nn.Mish(),
             nn.Linear(width, width),
-            Mish(),
+            nn.Mish(),
             nn.Linear(width, dof),
         )
         nn.init.zeros_(self.net[-1].weight)

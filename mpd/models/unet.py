@@ -26,8 +26,6 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from mpd.models.activations import Mish
-
 KERNEL_SIZE = 5
 N_GROUPS = 8
 
@@ -55,7 +53,7 @@ class Conv1dBlock(nn.Sequential):
         super().__init__(
             nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2),
             nn.GroupNorm(n_groups, c_out),
-            Mish(),
+            nn.Mish(),
         )
 
 
@@ -66,7 +64,7 @@ class ResidualTemporalBlock(nn.Module):
         super().__init__()
         self.block1 = Conv1dBlock(c_in, c_out, kernel_size)
         self.block2 = Conv1dBlock(c_out, c_out, kernel_size)
-        self.film = nn.Sequential(Mish(), nn.Linear(cond_dim, 2 * c_out))
+        self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * c_out))
         self.residual = nn.Conv1d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
 
     def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
@@ -171,7 +169,7 @@ class TemporalUnet(nn.Module):
         self.time_mlp = nn.Sequential(
             SinusoidalPosEmb(time_emb_dim),
             nn.Linear(time_emb_dim, 4 * time_emb_dim),
-            Mish(),
+            nn.Mish(),
             nn.Linear(4 * time_emb_dim, time_emb_dim),
         )
         cond_dim = time_emb_dim + context_dim
