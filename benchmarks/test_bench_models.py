@@ -46,12 +46,16 @@ def panda_batch(batch: int, horizon: int) -> tuple[torch.Tensor, dict[str, torch
     return x, ctx
 
 
+@pytest.mark.parametrize("layout", ["channels-last-2d", "conv1d"])
 @pytest.mark.parametrize("horizon", [24, 32])
-def test_forward_batch100(benchmark, threads, horizon):
+def test_forward_batch100(benchmark, threads, horizon, layout):
+    """``layout``: the U-Net's CPU inference path (its convolutions as channels-last 2-D ones, the default) or its 1-D
+    reference (``TemporalUnet.channels_last_2d = False``)."""
     model = panda_model(horizon).eval()
+    model.unet.channels_last_2d = layout == "channels-last-2d"
     x, ctx = panda_batch(100, horizon)
     n_params = sum(p.numel() for p in model.parameters())
-    benchmark.extra_info.update(parameters=n_params, threads=threads, horizon=horizon, batch=100)
+    benchmark.extra_info.update(parameters=n_params, threads=threads, horizon=horizon, batch=100, layout=layout)
     print(f"\nPanda denoiser: {n_params:,} parameters (H={horizon}, d={DOF})")
 
     def forward():

@@ -954,3 +954,62 @@ def test_bundled_shipped_priors_verify_against_their_locks():
         assert path.stat().st_size <= limit * 2**20, f"{path} is over {limit} MB"
         model = load_model(path, expect_task=lock["task_name"])
         assert model.meta["identity"] == lock["identity"] == path.stem.rsplit("-", 1)[1]
+
+
+@pytest.mark.parametrize(
+    "dof,horizon,kind,spec",
+    [
+        (2, 16, "goal_joint_position", ModelSpec()),
+        (7, 24, "goal_ee_pose", ModelSpec(unet_dim=32, unet_dim_mults=[1, 2, 4, 8], context_dim=128, context_layers=2)),
+    ],
+    ids=["2d", "panda"],
+)
+def test_channels_last_2d_inference_path_matches_the_1d_convolutions(dof, horizon, kind, spec):
+    """The U-Net's CPU inference path (convolutions as channels-last 2-D ones) against its 1-D reference: the same
+    outputs to float32 rounding (and bf16 autocast's), the 1-D path bitwise whenever autograd is on, and the cached
+    4-D weights follow new weights (load_state_dict, an in-place update)."""
+    g = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    model = DiffusionModel(dof, horizon, kind, spec).eval()
+    unet = model.unet
+    x = torch.randn(5, horizon, dof, generator=g)
+    ctx = {"q_start": torch.rand(5, dof, generator=g)}
+    ctx.update(
+        {"ee_pos": torch.rand(5, 3, generator=g), "ee_rot": torch.linalg.qr(torch.randn(5, 3, 3, generator=g)).Q}
+        if kind == "goal_ee_pose"
+        else {"q_goal": torch.rand(5, dof, generator=g)}
+    )
+    t = torch.tensor([0, 3, 10, 50, 99])
+
+    def both():
+        with torch.no_grad():
+            unet.channels_last_2d = True
+            fast = model(x, t, ctx)
+            unet.channels_last_2d = False
+            ref = model(x, t, ctx)
+            unet.channels_last_2d = True
+        return fast, ref
+
+    fast, ref = both()
+    assert ref.abs().mean() > 0.1
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        fast_b, ref_b = both()
+    torch.testing.assert_close(fast_b.float(), ref.float(), rtol=0.1, atol=0.1)
+    assert (fast_b.float() - ref).abs().mean() < 2 * (ref_b.float() - ref).abs().mean() + 1e-3
+    # with autograd: the 1-D path, bitwise
+    unet.channels_last_2d = False
+    ref_grad = model(x, t, ctx)
+    unet.channels_last_2d = True
+    assert torch.equal(model(x, t, ctx), ref_grad)
+    # new weights: in place, then by load_state_dict
+    with torch.no_grad():
+        for p in unet.parameters():
+            p.mul_(1.1)
+    fast, ref = both()
+    torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-5)
+    other = DiffusionModel(dof, horizon, kind, spec)
+    model.load_state_dict(other.state_dict())
+    fast2, ref2 = both()
+    torch.testing.assert_close(fast2, ref2, rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(fast2, fast)
