@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
 import signal
 
 import numpy as np
@@ -866,6 +867,14 @@ def test_shipped_prior_is_found_by_identity_verified_and_reproduced_bit_for_bit(
     path = shipped.ship(trained, tmp_path / "priors")
     lock = json.loads(path.with_name(path.name.replace(".pt", ".lock.json")).read_text())
     meta = json.loads((trained.parent / "meta.json").read_text())
+    assert path.parent == tmp_path / "priors" / "models" / "Toy"
+    old = tmp_path / "old-layout" / "Toy"  # a folder of MPD_PRIORS in the layout before models/
+    old.mkdir(parents=True)
+    for f in (path, path.with_name(path.name.replace(".pt", ".lock.json"))):
+        shutil.copy(f, old / f.name)
+    monkeypatch.setenv("MPD_PRIORS", str(tmp_path / "old-layout"))
+    assert shipped.find("Toy", "diffusion", "bspline", lock["identity"]) == old / path.name
+    monkeypatch.setenv("MPD_PRIORS", str(tmp_path / "priors"))
     assert lock["sha256"] == file_sha256(path) and lock["identity"] == meta["identity"] and lock["steps"] == 20
     for key in ("dataset_hash", "task_hash", "training_spec", "seed", "wall_time_s", "cpu", "git_commit"):
         assert lock[key] not in (None, "") or key == "git_commit"
@@ -946,7 +955,8 @@ def test_bundled_shipped_priors_verify_against_their_locks():
     5 MB for the 2-D tasks; the Panda issue: 10 MB for the Panda ones), and loads."""
     from mpd.models import shipped
 
-    files = sorted(shipped.BUNDLED.glob("*/*.pt"))
+    files = sorted(shipped.BUNDLED.glob(f"{shipped.MODELS}/*/*.pt"))
+    assert files and not list(shipped.BUNDLED.glob("*/*.pt")), "shipped checkpoints belong in mpd/priors/models/"
     for path in files:
         lock, why = shipped.verify(path)
         assert why is None, f"{path}: {why}"

@@ -6,10 +6,13 @@ settings, network and training specs, seed, network version), checks its sha256 
 into the cache. A file whose hash does not match its lock is never used: it is named on stderr and the model is
 trained. ``mpd train --no-shipped`` trains (and so reproduces) a shipped model instead.
 
-Layout, one folder per task::
+Layout, one folder per task under ``models/`` (the dataset digests, :mod:`mpd.data.digest`, sit in
+``mpd/priors/<task>/``)::
 
-    mpd/priors/<task>/<kind>-<parametrization>-<identity>.pt
-    mpd/priors/<task>/<kind>-<parametrization>-<identity>.lock.json
+    mpd/priors/models/<task>/<kind>-<parametrization>-<identity>.pt
+    mpd/priors/models/<task>/<kind>-<parametrization>-<identity>.lock.json
+
+A folder of ``MPD_PRIORS`` may also hold them one level up (``<folder>/<task>/``), the layout before 2026-12-04.
 
 The file is a checkpoint of the cache format with the EMA weights only (what sampling uses: ``weights`` refers to
 the same tensors, which ``torch.save`` stores once), float32, so that a shipped prior samples exactly what the
@@ -42,6 +45,12 @@ BUNDLED = SHIPPED_BUNDLED
 ENV = SHIPPED_ENV
 LOCK_FORMAT = "mpd-shipped-prior"
 MAX_BYTES = 10 * 1024 * 1024  # the priors issue: <= 5 MB for the 2-D tasks, <= 10 MB for the Panda ones
+MODELS = "models"  # the sub-folder of a root that holds the checkpoints
+
+
+def _task_dirs(root: Path, task_name: str) -> tuple[Path, Path]:
+    """Where a root keeps a task's shipped checkpoints: ``root/models/<task>``, then the older ``root/<task>``."""
+    return root / MODELS / task_name, root / task_name
 
 
 def roots() -> list[Path]:
@@ -80,8 +89,7 @@ def verify(path: Path) -> tuple[dict[str, Any] | None, str | None]:
 def find(task_name: str, kind: str, parametrization: str, identity: str) -> Path | None:
     """The verified shipped file of this model, or None. A corrupted one is reported and skipped."""
     name = stem(kind, parametrization, identity) + ".pt"
-    for root in roots():
-        path = root / task_name / name
+    for path in (d / name for root in roots() for d in _task_dirs(root, task_name)):
         if not path.is_file():
             continue
         lock, why = verify(path)
@@ -131,7 +139,7 @@ WEIGHTS_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 def ship(
     model_path: str | Path, root: str | Path = BUNDLED, max_bytes: int = MAX_BYTES, weights_dtype: str = "auto"
 ) -> Path:
-    """Write the shipped form of a trained cache model (its ``model.pt``) and its lock under ``root/<task>/``;
+    """Write the shipped form of a trained cache model (its ``model.pt``) and its lock under ``root/models/<task>/``;
     returns the shipped file. ``weights_dtype``: float32, bfloat16, or auto (float32 when it fits in ``max_bytes``,
     else bfloat16). Raises ValueError when the file would exceed ``max_bytes``."""
     if weights_dtype not in ("auto", *WEIGHTS_DTYPES):
@@ -145,7 +153,7 @@ def ship(
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     ema32 = ckpt["ema_weights"]
     ckpt["weights_are_ema"] = True
-    out_dir = Path(root) / ckpt["task_name"]
+    out_dir = Path(root) / MODELS / ckpt["task_name"]
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / (stem(ckpt["kind"], ckpt["parametrization"], ckpt["identity"]) + ".pt")
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -209,7 +217,7 @@ def list_shipped() -> list[dict[str, Any]]:
     """Every shipped prior with its lock and whether it verifies (``ok``, ``problem``)."""
     out = []
     for root in roots():
-        for path in sorted(root.glob("*/*.pt")):
+        for path in sorted([*root.glob(f"{MODELS}/*/*.pt"), *root.glob("*/*.pt")]):
             lock, why = verify(path)
             out.append({**(lock or {}), "path": str(path), "ok": why is None, "problem": why})
     return out
