@@ -311,10 +311,10 @@ def test_bf16_network_precision_denoises_like_fp32():
     ``auto`` picks bf16 exactly where the CPU has native bf16 (AVX512_BF16 / AMX flags)."""
     from mpd.device import BF16_CPU_FLAGS, cpu_flags, network_precision
     from mpd.models.checkpoint import load_model
-    from mpd.models.shipped import BUNDLED
+    from mpd.models.shipped import BUNDLED, MODELS
 
     task = load_task("EnvSimple2D-RobotPointMass2D")
-    model = load_model(next((BUNDLED / task.name).glob("diffusion-bspline-*.pt")))
+    model = load_model(next((BUNDLED / MODELS / task.name).glob("diffusion-bspline-*.pt")))
     ctx = context_of(task)
     cond = model.normalize_context({"q_start": ctx.q_start, "q_goal": ctx.q_goal})
     x = torch.randn(100, model.horizon, task.dof, generator=torch.Generator().manual_seed(0))
