@@ -7,8 +7,10 @@
 * ``mpd/simple2d`` and ``prior/simple2d``: EnvSimple2D-RobotPointMass2D (16 free control points), extra objects.
 
 Each plan also runs with ``planner.network_precision = "bf16"`` where the CPU computes bfloat16 natively (fp32
-everywhere: the fp32 path is always benchmarked). Medians of 7 rounds after one warm-up; the planner's own
-breakdown (network, cost gradient, each cost) of the median round is stored in ``extra_info``.
+everywhere: the fp32 path is always benchmarked), and with ``planner.network_compile`` (the U-Net compiled by
+torch.compile with frozen weights; its compilation falls in the warm-up round). Medians of 7 rounds after one
+warm-up; the planner's own breakdown (network, cost gradient, each cost) of the median round is stored in
+``extra_info``.
 
 Run: ``pytest benchmarks/test_bench_plans.py -m benchmark --benchmark-only --benchmark-enable`` (``nox -s
 benchmarks``), alone on the machine: another process on the same cores makes every figure meaningless.
@@ -53,10 +55,11 @@ def two_threads():
     torch.set_num_threads(n)
 
 
+@pytest.mark.parametrize("network", ["eager", "compiled"])
 @pytest.mark.parametrize("precision", PRECISIONS)
 @pytest.mark.parametrize("method", ["mpd", "prior"])
 @pytest.mark.parametrize("which", list(TASKS))
-def test_plan(benchmark, which, method, precision):
+def test_plan(benchmark, which, method, precision, network):
     task = authors_task(TASKS[which])
     planner = make_planner(
         "mpd" if method == "mpd" else "dprior",
@@ -64,7 +67,7 @@ def test_plan(benchmark, which, method, precision):
         model=random_model(task, make_parametrization(task)),
         device="cpu",
         extra_objects=True,
-        overrides={"guide_fraction": 0.3, "network_precision": precision},
+        overrides={"guide_fraction": 0.3, "network_precision": precision, "network_compile": network == "compiled"},
     )
     ctx = plan_context(task, "cpu")
     timings = []
@@ -72,7 +75,7 @@ def test_plan(benchmark, which, method, precision):
     def run():
         timings.append(planner.plan(ctx, 100, seed=0).timings)
 
-    benchmark.pedantic(run, rounds=7, warmup_rounds=1)
+    benchmark.pedantic(run, rounds=7, warmup_rounds=1)  # a compiled network compiles in the warm-up round
     runs = timings[1:]  # the warm-up's first
     walls = [t["total"] for t in runs]
     t = runs[walls.index(sorted(walls)[len(walls) // 2])]

@@ -1023,3 +1023,38 @@ def test_channels_last_2d_inference_path_matches_the_1d_convolutions(dof, horizo
     fast2, ref2 = both()
     torch.testing.assert_close(fast2, ref2, rtol=1e-5, atol=1e-5)
     assert not torch.allclose(fast2, fast)
+
+
+def test_compiled_inference_matches_eager_follows_new_weights_and_compiles_once_per_shape():
+    """``DiffusionModel(..., compiled=True)`` (TemporalUnet.compiled: torch.compile, frozen weights) against the eager
+    network: the same outputs to float32 rounding; every diffusion step (given as an int or a tensor) runs the one
+    graph of its shape; new weights (in place, load_state_dict) rebuild the graph instead of going stale; a copy of
+    the module carries no compiled graph; with autograd on it refuses."""
+    import copy
+
+    from torch._dynamo.utils import counters
+
+    torch.manual_seed(0)
+    spec = ModelSpec(unet_dim=8, unet_dim_mults=[1, 2], context_dim=16, context_layers=1, time_emb_dim=8)
+    model = DiffusionModel(2, 16, "goal_joint_position", spec).eval()
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(6, 16, 2, generator=g)
+    ctx = {"q_start": torch.rand(1, 2, generator=g), "q_goal": torch.rand(1, 2, generator=g)}
+    torch._dynamo.reset()
+    counters.clear()
+    with torch.no_grad():
+        for t in (99, 37, torch.tensor(5), 0):
+            torch.testing.assert_close(model(x, t, ctx, compiled=True), model(x, t, ctx), rtol=1e-5, atol=1e-5)
+        assert counters["stats"]["unique_graphs"] == 1
+        before = model(x, 10, ctx, compiled=True)
+        for p in model.unet.parameters():
+            p.mul_(1.1)
+        after = model(x, 10, ctx, compiled=True)
+        torch.testing.assert_close(after, model(x, 10, ctx), rtol=1e-5, atol=1e-5)
+        assert not torch.allclose(before, after)
+        model.load_state_dict(DiffusionModel(2, 16, "goal_joint_position", spec).state_dict())
+        torch.testing.assert_close(model(x, 10, ctx, compiled=True), model(x, 10, ctx), rtol=1e-5, atol=1e-5)
+    assert "_compiled" in model.unet.__dict__
+    assert "_compiled" not in copy.deepcopy(model).unet.__dict__
+    with pytest.raises(RuntimeError, match="no_grad"):
+        model(x, 10, ctx, compiled=True)

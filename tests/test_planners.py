@@ -335,3 +335,22 @@ def test_bf16_network_precision_denoises_like_fp32():
     assert network_precision("auto", "cpu") == ("bf16" if cpu_flags() & set(BF16_CPU_FLAGS) else "fp32")
     with pytest.raises(ValueError, match="network_precision"):
         network_precision("fp16", "cpu")
+
+
+def test_compiled_network_plans_like_the_eager_one():
+    """``planner.network_compile``: an MPD plan with the shipped EnvSimple2D prior's U-Net compiled (torch.compile,
+    frozen weights) gives the eager plan's samples to float32 rounding (same random stream), and says so in its
+    info."""
+    from mpd.models.checkpoint import load_model
+    from mpd.models.shipped import BUNDLED, MODELS
+
+    task = load_task("EnvSimple2D-RobotPointMass2D")
+    model = load_model(next((BUNDLED / MODELS / task.name).glob("diffusion-bspline-*.pt")))
+    ctx = context_of(task)
+    plans = {}
+    for compiled in (False, True):
+        p = make_planner("mpd", task, model=model, device="cpu", overrides={"network_compile": compiled})
+        plans[compiled] = res = p.plan(ctx, 20, seed=3)
+        assert res.info["network_compiled"] is compiled
+    torch.testing.assert_close(plans[True].free, plans[False].free, rtol=1e-4, atol=1e-4)
+    assert plans[True].free.std() > 0.1

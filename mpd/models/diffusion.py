@@ -350,10 +350,24 @@ class DiffusionModel(nn.Module):
     def n_diffusion_steps(self) -> int:
         return self.schedule.n_steps
 
-    def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, context: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Predicted noise. Context fields have batch 1 (shared by every sample) or the batch of ``x_t``."""
+    def forward(
+        self, x_t: torch.Tensor, t: int | torch.Tensor, context: Mapping[str, torch.Tensor], compiled: bool = False
+    ) -> torch.Tensor:
+        """Predicted noise. Context fields have batch 1 (shared by every sample) or the batch of ``x_t``.
+        ``compiled``: the U-Net through :meth:`TemporalUnet.compiled` (inference only, under ``torch.no_grad()``)."""
         emb = self.context_encoder(context)
-        eps = self.unet(x_t, t, emb)
+        if compiled:
+            if torch.is_grad_enabled():
+                raise RuntimeError("the compiled network is for inference: call it under torch.no_grad()")
+            try:
+                eps = self.unet.compiled()(x_t, as_step_tensor(t, x_t.shape[0], x_t.device), emb)
+            except torch._dynamo.exc.BackendCompilerFailed as e:
+                raise RuntimeError(
+                    "planner.network_compile: torch.compile could not compile the denoising network (on a CPU "
+                    f"inductor needs a C++ compiler, e.g. g++); run with network_compile = false. Cause: {e}"
+                ) from e
+        else:
+            eps = self.unet(x_t, t, emb)
         if self.goal_head is None:
             return eps
         b = x_t.shape[0]

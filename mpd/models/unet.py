@@ -20,7 +20,7 @@ H is padded (edge values) to a multiple of ``2^(L-1)`` and cropped back, so any 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import nn
@@ -53,12 +53,19 @@ def conv(m: nn.Module, h: torch.Tensor) -> torch.Tensor:
     dtype or device)."""
     if isinstance(m, nn.Identity) or h.ndim == 3:
         return m(h)
+    stride, padding = (1, m.stride[0]), (0, m.padding[0])
+    if torch.compiler.is_compiling():
+        # traced by torch.compile: the 4-D weight as a function of the parameter (inductor's freezing folds it into
+        # a constant), not the cache, whose attribute writes would recompile the graph
+        w4 = m.weight.unsqueeze(2)
+        if isinstance(m, nn.ConvTranspose1d):
+            return F.conv_transpose2d(h, w4, m.bias, stride=stride, padding=padding)
+        return F.conv2d(h, w4, m.bias, stride=stride, padding=padding)
     w = m.weight
     key = (w._version, w.data_ptr(), w.dtype, w.device)
     if getattr(m, "_w4_key", None) != key:
         m._w4 = w.detach().unsqueeze(2).contiguous(memory_format=torch.channels_last)
         m._w4_key = key
-    stride, padding = (1, m.stride[0]), (0, m.padding[0])
     if isinstance(m, nn.ConvTranspose1d):
         return F.conv_transpose2d(h, m._w4, m.bias, stride=stride, padding=padding)
     return F.conv2d(h, m._w4, m.bias, stride=stride, padding=padding)
@@ -204,6 +211,28 @@ class TemporalUnet(nn.Module):
         self.final = nn.Sequential(Conv1dBlock(top, top), nn.Conv1d(top, dof, 1))
         # the CPU inference path (no autograd): False runs the 1-D convolutions everywhere, its reference
         self.channels_last_2d = True
+
+    def compiled(self) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+        """This network's forward compiled by torch.compile (inductor) for inference: weights frozen into the graph
+        (``freezing``: constant-folded, prepacked for oneDNN on a CPU), one graph per input shape and autocast
+        state (``dynamic=False``). Call it under ``torch.no_grad()`` with the step as a ``(B,)`` tensor (a Python
+        int would be compiled as a constant). Kept on the module and rebuilt when a parameter changes (its version
+        counter or storage), since frozen weights would otherwise go stale. The first call per shape compiles
+        (~30-70 s on a 2-core CPU); ``PlannerSettings.network_compile`` turns it on for a planner."""
+        key = tuple((p._version, p.data_ptr(), p.dtype, p.device) for p in self.parameters())
+        held = self.__dict__.get("_compiled")
+        if held is None or held[0] != key:
+            held = self.__dict__["_compiled"] = (
+                key,
+                torch.compile(self.forward, dynamic=False, options={"freezing": True}),
+            )
+        return held[1]
+
+    def __getstate__(self) -> dict:
+        # a copy or a pickle of the module never carries a compiled graph (it is rebuilt on demand)
+        state = super().__getstate__()
+        state.pop("_compiled", None)
+        return state
 
     def forward(self, x: torch.Tensor, t: int | torch.Tensor, context_emb: torch.Tensor) -> torch.Tensor:
         if x.ndim != 3 or x.shape[-1] != self.dof:

@@ -58,7 +58,7 @@ class MPD(Planner):
             n_guided = s.guided_steps(len(pairs)) if self.guided else 0
             for i, (t, tn) in enumerate(pairs):
                 with timer("network"), autocast():
-                    eps = net(x, t, cond).float()
+                    eps = net(x, t, cond, compiled=s.network_compile).float()
                 sigma = ddim_sigma(t, tn, s.eta) if tn >= 0 else 0.0
                 if i < len(pairs) - n_guided:
                     x = ddim_step(x, eps, t, tn, s.eta, noise_if(sigma, tn))
@@ -83,7 +83,7 @@ class MPD(Planner):
             n_guided = s.guided_steps(steps) if self.guided else 0
             for i, t in enumerate(range(steps - 1, -1, -1)):
                 with timer("network"), autocast():
-                    eps = net(x, t, cond).float()
+                    eps = net(x, t, cond, compiled=s.network_compile).float()
                 guided = t < n_guided
                 mean = ddpm_mean(x, s.ddpm_prior_weight * eps if guided else eps, t, schedule=sch)
                 if guided:
@@ -105,7 +105,9 @@ class MPD(Planner):
             free = self.normalizer.unnormalize(x)
         timer.times["sampling"] = timer.times["total"] - timer.times.get("cost_gradient", 0.0)
         precision = network_precision(self.settings.network_precision, self.device)
-        return self.finish(free, ctx, timer, hist, network_precision=precision)
+        return self.finish(
+            free, ctx, timer, hist, network_precision=precision, network_compiled=self.settings.network_compile
+        )
 
     def after_sampling(self, x: torch.Tensor, ctx: Context, timer: Timer, hist: list | None) -> torch.Tensor:
         return x

@@ -40,6 +40,10 @@ class PlannerSettings:
     # the denoising network's forward passes: fp32, bf16 autocast, or auto (bf16 where the device computes it
     # natively: AVX512_BF16 / AMX CPUs, CUDA; fp32 elsewhere). Recorded per results row (info_network_precision).
     network_precision: Literal["fp32", "bf16", "auto"] = "fp32"
+    # the U-Net's forward compiled by torch.compile (inductor, frozen weights) for the denoising passes: faster per
+    # pass, but each new batch shape compiles first (~30-70 s on a 2-core CPU), so it pays off over many plans of
+    # one process. Recorded per results row (info_network_compiled).
+    network_compile: bool = False
     ddim_schedule: Literal["quadratic", "uniform"] = "quadratic"
     ddim_variant: Literal["official", "paper"] = "official"
     eta: float = 0.5
