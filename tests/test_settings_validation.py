@@ -29,6 +29,7 @@ EXAMPLES: dict[str, tuple[list, list]] = {
     "sampler": (["ddim", "ddpm"], ["ddip", None]),
     "ddim_steps": ([1, 15], [0, -3, 2.5, "15"]),
     "network_precision": (["fp32", "bf16", "auto"], ["fp16", 1]),
+    "network_compile": ([True, False], ["yes", 1, None]),
     "ddim_schedule": (["quadratic", "uniform"], ["linear"]),
     "ddim_variant": (["official", "paper"], ["x"]),
     "eta": ([0, 0.5, 1.0], [-0.1, 1.1, "abc"]),

@@ -46,6 +46,8 @@ class MPD(Planner):
         precision = network_precision(s.network_precision, dev)
         autocast = functools.partial(network_autocast, precision, dev)
         grad_fn = self.cost_grad_fn(ctx, timer) if self.guided else None
+        # the model's compiled U-Net (DiffusionModel.forward) when asked for; otherwise the network is called plainly
+        eps_net = functools.partial(net, compiled=True) if s.network_compile else net
         x = randn(shape, gen, dev)
         if hist is not None:
             hist.append(HistoryStep("noise", 0, self.normalizer.unnormalize(x)))
@@ -58,7 +60,7 @@ class MPD(Planner):
             n_guided = s.guided_steps(len(pairs)) if self.guided else 0
             for i, (t, tn) in enumerate(pairs):
                 with timer("network"), autocast():
-                    eps = net(x, t, cond, compiled=s.network_compile).float()
+                    eps = eps_net(x, t, cond).float()
                 sigma = ddim_sigma(t, tn, s.eta) if tn >= 0 else 0.0
                 if i < len(pairs) - n_guided:
                     x = ddim_step(x, eps, t, tn, s.eta, noise_if(sigma, tn))
@@ -83,7 +85,7 @@ class MPD(Planner):
             n_guided = s.guided_steps(steps) if self.guided else 0
             for i, t in enumerate(range(steps - 1, -1, -1)):
                 with timer("network"), autocast():
-                    eps = net(x, t, cond, compiled=s.network_compile).float()
+                    eps = eps_net(x, t, cond).float()
                 guided = t < n_guided
                 mean = ddpm_mean(x, s.ddpm_prior_weight * eps if guided else eps, t, schedule=sch)
                 if guided:
