@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -131,15 +132,36 @@ def gpu(session: nox.Session) -> None:
 # what the lent GPU machine's image lacks of mpd's dependencies (its python3 holds torch, numpy, scipy, pandas,
 # matplotlib, pytest, ...): pybullet has no wheel for it (its tests skip there), rerun and ray are not needed
 GPU_WHEELS = ["ompl==2.0.1", "pytorch_kinematics==0.10.0", "arm_pytorch_utilities", "pytorch_seed"]
+# the files of pybullet_data that mpd reads without pybullet (the Panda's kinematics come from its URDF)
+GPU_PYBULLET_DATA = ["franka_panda/panda.urdf"]
 
 
 @nox.session(venv_backend="none")
 def gpu_wheels(session: nox.Session) -> None:
     """Download, here, the wheels the offline GPU machine needs (Python 3.12, manylinux x86-64) into .whl/ (ignored by
-    git); carry `.whl` to it and run benchmarks/gpu_check.py there as its docstring says."""
+    git), with the Panda URDF as a pybullet_data package; carry `.whl` to it and run benchmarks/gpu_check.py there as
+    its docstring says."""
     dest = ROOT / ".whl"
     platforms = ["manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"]
     args = ["--no-deps", "--only-binary=:all:", "--python-version", "3.12", "--implementation", "cp"]
     for p in platforms:
         args += ["--platform", p]
     session.run(sys.executable, "-m", "pip", "download", "-q", *args, "-d", str(dest), *GPU_WHEELS, external=True)
+    # pybullet_data without pybullet: a package of the URDF files alone, importable with .whl on PYTHONPATH
+    src = Path(
+        session.run(
+            str(_venv(session) / "python"),
+            "-c",
+            "import pybullet_data; print(pybullet_data.getDataPath())",
+            silent=True,
+            external=True,
+        ).strip()
+    )
+    pkg = dest / "pybullet_data"
+    for rel in GPU_PYBULLET_DATA:
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(src / rel, pkg / rel)
+    (pkg / "__init__.py").write_text(
+        "# pybullet_data's URDF files that mpd reads, unchanged, for a machine without pybullet (noxfile: gpu_wheels)\n"
+        "import os\n\n\ndef getDataPath():\n    return os.path.dirname(__file__)\n"
+    )

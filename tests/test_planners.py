@@ -28,6 +28,10 @@ def context_of(task) -> Context:
     q = {
         "EnvSimple2D-RobotPointMass2D": ([-0.2, -0.9], [-0.2, 0.9]),
         "EnvPlanar4Link-RobotPlanar4Link": ([1.2, 0.3, 0.2, -0.3], [-1.6, 0.4, -0.3, 0.4]),
+        "EnvSpheres3D-RobotPanda": (
+            [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+            [0.5, 0.3, -0.4, -2.0, 0.2, 2.0, 0.5],
+        ),
     }[task.name]
     qs, qg = (torch.tensor(v, dtype=torch.float32) for v in q)
     if task.ee_goal:
@@ -354,3 +358,21 @@ def test_compiled_network_plans_like_the_eager_one():
         assert res.info["network_compiled"] is compiled
     torch.testing.assert_close(plans[True].free, plans[False].free, rtol=1e-4, atol=1e-4)
     assert plans[True].free.std() > 0.1
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("task_name", ["EnvSimple2D-RobotPointMass2D", "EnvSpheres3D-RobotPanda"])
+@pytest.mark.parametrize("method", ["mpd", "dprior", "cvae-cost"])
+def test_cuda_plan_with_a_model_loaded_on_the_cpu(task_name, method):
+    """A planner on a GPU given a model loaded on the CPU plans on the GPU with a copy of it (the caller's model
+    stays on the CPU), and its samples have the CPU plan's shape and are finite (the lent H200 of 2026-12-04 found
+    the network left on the CPU)."""
+    task = load_task(task_name)
+    kind = "cvae" if method.startswith("cvae") else "diffusion"
+    model = random_model(task, kind)
+    planner = make_planner(method, task, model=model, device="cuda")
+    assert next(planner.model.network.parameters()).is_cuda
+    res = planner.plan(context_of(task), 8, seed=0)
+    ref = make_planner(method, task, model=model, device="cpu").plan(context_of(task), 8, seed=0)
+    assert next(model.network.parameters()).device.type == "cpu"
+    assert res.free.shape == ref.free.shape and torch.isfinite(torch.as_tensor(res.free)).all()

@@ -7,6 +7,8 @@ task and dataset identity, parametrization and its settings, seed, step and prov
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -113,6 +115,18 @@ class LoadedModel:
     @property
     def task_name(self) -> str:
         return self.meta["task_name"]
+
+    def to(self, device: torch.device | str) -> LoadedModel:
+        """This model on ``device``: itself when it is there already, else a copy (the network copied, so that a
+        planner on a GPU never moves the network of a caller who plans on the CPU with the same model)."""
+        device = torch.device(device)
+        if device.type == "cuda" and device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+        here = next(self.network.parameters(), None)
+        if here is not None and here.device == device and self.device == device:
+            return self
+        net = copy.deepcopy(self.network).to(device)
+        return dataclasses.replace(self, network=net, device=device)
 
     @property
     def parametrization(self) -> str:

@@ -128,8 +128,9 @@ class Planner:
         self.env = env
         self.settings = settings
         self.param = parametrization
-        self.model = model
         self.device = torch.device(device)
+        # a model loaded elsewhere (a CPU model given to a planner on a GPU) is used on the planner's device
+        self.model = model.to(self.device) if hasattr(model, "to") else model
         self.robot = task.robot
         self.cost = None
         if self.uses_cost:

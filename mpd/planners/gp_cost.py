@@ -141,6 +141,7 @@ class GPPriorCost(Planner):
         return x
 
     def plan(self, ctx: Context, n_samples: int, seed: int, record_history: bool = False):
+        ctx = ctx.to(self.device)  # a context made on the CPU plans on the planner's device
         gen = torch.Generator().manual_seed(seed)
         timer = Timer(self.device)
         hist: list[HistoryStep] | None = [] if record_history else None

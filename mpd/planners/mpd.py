@@ -97,6 +97,7 @@ class MPD(Planner):
         return x
 
     def plan(self, ctx: Context, n_samples: int, seed: int, record_history: bool = False):
+        ctx = ctx.to(self.device)  # a context made on the CPU plans on the planner's device
         # a CPU generator: the same random numbers whatever device the network runs on
         gen = torch.Generator().manual_seed(seed)
         timer = Timer(self.device)

@@ -26,6 +26,7 @@ class RRTConnectCost(Planner):
     parametrizations = ("bspline",)
 
     def plan(self, ctx: Context, n_samples: int, seed: int, record_history: bool = False):
+        ctx = ctx.to(self.device)  # a context made on the CPU plans on the planner's device
         from mpd.data.planning import plan_path
 
         gen = torch.Generator().manual_seed(seed)
