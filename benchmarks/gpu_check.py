@@ -9,7 +9,8 @@ With internet (any CUDA machine):   nox -s gpu                 (installs mpd, th
 The lent, offline machine (its python3 has a CUDA torch): prepare the wheels here once, `nox -s gpu_wheels` (mpd's
 dependencies that image lacks, for its Python 3.12, into `.whl/`), then in one device call that carries `.whl`:
 
-    python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD/.whl:$PWD
+    python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
+    export PYTHONPATH=/tmp/site:$PWD/.whl:$PWD
     python3 benchmarks/gpu_check.py --out $OUT/gpu.json
 
 (`.whl/pybullet_data` holds the Panda URDF, which mpd reads from pybullet_data, for that machine has no pybullet.)
