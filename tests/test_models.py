@@ -406,6 +406,34 @@ def test_truncated_or_foreign_file_is_a_clear_error(trained, tmp_path):
         load_model(tmp_path / "missing.pt")
 
 
+def test_cvae_kl_warmup_scales_the_kl_term_and_enters_only_the_cvae_identity(tmp_path):
+    """``training.kl_warmup_steps``: the loss is reconstruction + scale x beta x KL (checked against the terms), the
+    training uses it (its first steps differ from a run without), and it changes a CVAE's identity only: the
+    diffusion identity and a CVAE with the default 0 keep the identity they had before the field existed."""
+    arrays = toy_arrays(n=24, horizon=9, dof=3, ee=True, n_val=4)
+    path = train_model(arrays, "cvae", TINY, tiny_training(steps=4), seed=0, progress=False, cache=tmp_path / "a")
+    model = load_model(path, device="cpu")
+    ctx = model.normalize_context({k: v[:4] for k, v in arrays.context.items()})
+    x = torch.randn(4, 9, 3, generator=torch.Generator().manual_seed(1))
+    for scale in (0.0, 0.25, 1.0):
+        t = model.network.loss_terms(x, ctx, torch.Generator().manual_seed(2), kl_scale=scale)
+        assert t["kl"] > 0 and torch.allclose(t["loss"], t["reconstruction"] + scale * 0.1 * t["kl"])
+    warm = train_model(
+        arrays, "cvae", TINY, tiny_training(steps=4, kl_warmup_steps=3), seed=0, progress=False, cache=tmp_path / "b"
+    )
+    a, b = (torch.load(p, weights_only=False)["weights"] for p in (path, warm))
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+    ident = {
+        (kind, w): model_identity("d", kind, "bspline", {}, TINY, tiny_training(kl_warmup_steps=w), 0)
+        for kind in ("diffusion", "cvae")
+        for w in (0, 100)
+    }
+    assert ident["diffusion", 0] == ident["diffusion", 100] and ident["cvae", 0] != ident["cvae", 100]
+    assert ident["cvae", 0] == model_identity("d", "cvae", "bspline", {}, TINY, tiny_training(), 0)
+    with pytest.raises(ValueError, match="kl_warmup_steps"):
+        train_model(arrays, "cvae", TINY, tiny_training(kl_warmup_steps=-1), progress=False, cache=tmp_path / "c")
+
+
 def test_identity_changes_with_every_setting():
     base = dict(
         dataset_hash="d",

@@ -117,17 +117,26 @@ class CVAE(nn.Module):
         return self.decode(z, emb), mu, logvar
 
     def loss_terms(
-        self, x0: torch.Tensor, context: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+        self,
+        x0: torch.Tensor,
+        context: Mapping[str, torch.Tensor],
+        generator: torch.Generator | None = None,
+        kl_scale: float = 1.0,
     ) -> dict[str, torch.Tensor]:
+        """``kl_scale`` multiplies beta (a KL warm-up: ``training.kl_warmup_steps``)."""
         recon, mu, logvar = self(x0, context, generator)
         rec = torch.linalg.vector_norm((recon - x0).flatten(1), dim=-1).mean()
         kl = kl_standard_normal(mu, logvar).mean()
-        return {"loss": rec + self.beta * kl, "reconstruction": rec, "kl": kl}
+        return {"loss": rec + kl_scale * self.beta * kl, "reconstruction": rec, "kl": kl}
 
     def loss(
-        self, x0: torch.Tensor, context: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+        self,
+        x0: torch.Tensor,
+        context: Mapping[str, torch.Tensor],
+        generator: torch.Generator | None = None,
+        kl_scale: float = 1.0,
     ) -> torch.Tensor:
-        return self.loss_terms(x0, context, generator)["loss"]
+        return self.loss_terms(x0, context, generator, kl_scale)["loss"]
 
     @torch.no_grad()
     def sample(

@@ -63,15 +63,18 @@ NETWORK_VERSION = 2
 # defaults, so that the models trained before they existed keep their identity (and their cache folder)
 LATER_TRAINING_FIELDS = (
     "decay_fraction", "loss_weighting", "min_snr_gamma", "precision", "t_sampling", "t_grid_fraction",
-    "goal_row_weight",
+    "goal_row_weight", "kl_warmup_steps",
 )  # fmt: skip
 
 
 def training_identity(ts: TrainingSpec, kind: str = "diffusion") -> dict[str, Any]:
     """The training spec as it enters a model's identity (see LATER_TRAINING_FIELDS). ``goal_row_weight`` is an
-    option of the diffusion loss: a CVAE's identity never carries it."""
+    option of the diffusion loss: a CVAE's identity never carries it; ``kl_warmup_steps`` one of the CVAE's loss,
+    which a diffusion model's never carries."""
     if kind != "diffusion":
         ts = dataclasses.replace(ts, goal_row_weight=1.0)
+    else:
+        ts = dataclasses.replace(ts, kl_warmup_steps=0)
     d = to_dict(ts)
     defaults = to_dict(TrainingSpec(batch_size=ts.batch_size, steps=ts.steps))
     for name in LATER_TRAINING_FIELDS:
@@ -301,6 +304,7 @@ def check_training_spec(ts: TrainingSpec) -> None:
         "val_every": ts.val_every >= 1,
         "checkpoint_every": ts.checkpoint_every >= 1,
         "warmup_steps": ts.warmup_steps >= 0,
+        "kl_warmup_steps": ts.kl_warmup_steps >= 0,
     }
     bad = [k for k, ok in checks.items() if not ok]
     if bad:
@@ -339,11 +343,13 @@ def train_model(
     ts = training_spec
     if kind != "diffusion":  # a diffusion-loss option: the CVAE neither uses it nor carries it in its identity
         ts = dataclasses.replace(ts, goal_row_weight=1.0)
-    elif ts.goal_row_weight != 1.0 and arrays.context_kind != EE_GOAL:
-        raise ValueError(
-            f"training.goal_row_weight = {ts.goal_row_weight!r}: {arrays.task_name} has a joint-space goal, so the "
-            "model has no free final configuration to weight; use 1"
-        )
+    else:  # and the other way round: a CVAE-loss option
+        ts = dataclasses.replace(ts, kl_warmup_steps=0)
+        if ts.goal_row_weight != 1.0 and arrays.context_kind != EE_GOAL:
+            raise ValueError(
+                f"training.goal_row_weight = {ts.goal_row_weight!r}: {arrays.task_name} has a joint-space goal, so "
+                "the model has no free final configuration to weight; use 1"
+            )
     identity = model_identity(
         arrays.dataset_hash,
         kind,
@@ -449,6 +455,8 @@ def train_model(
         while step < end:
             idx = torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)
             xb, cb = train.batch(idx)
+            if kind == "cvae" and ts.kl_warmup_steps > 0:
+                loss_kwargs["kl_scale"] = min(1.0, step / ts.kl_warmup_steps)
             with autocast:
                 loss = net.loss(xb, cb, gen, **loss_kwargs)
             opt.zero_grad(set_to_none=True)

@@ -236,6 +236,10 @@ class TrainingSpec:
     # study option of the `cpu` profiles for the Panda, whose short trainings do not learn the goal
     # (reports/recipe-study-panda). Joint-goal tasks fix their last rows, so there it must stay 1.
     goal_row_weight: float = 1.0
+    # CVAE only: the KL term's weight rises linearly from 0 to beta over this many steps (Bowman et al. 2016), 0: beta
+    # from the first step (the authors). A remedy for posterior collapse, the decoder ignoring its latent, which a
+    # cpu-profile CVAE of EnvSpheres3D showed (reports/eval-panda-cpu); a diffusion model's identity never carries it.
+    kl_warmup_steps: int = 0
 
 
 @dataclass(frozen=True)
