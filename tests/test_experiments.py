@@ -661,3 +661,24 @@ def test_scale_shrinks_every_cell_and_touches_nothing_full_size(tmp_path, monkey
         scale_spec(full, 0)
     text = Runner(small).describe()
     assert "-x1e-05 [" in text and "train 20 steps" in text
+
+
+def test_read_results_rebuilds_a_table_older_than_a_replaced_part(tmp_path):
+    """Runs made in pieces and merged by copying parts: a part replaced by one of the same size (another run of the
+    same cells) is newer than results.parquet, so the table is rebuilt from the parts, not the stale file read."""
+    from mpd.experiments.results import write_parquet
+
+    store = RowStore(tmp_path)
+    for i in range(3):
+        store.append("cellA", {"cell_key": "cellA", "context_index": i, "vendi": 1.0})
+    write_parquet(store.table(), tmp_path / "results.parquet")
+    assert read_results(tmp_path).vendi.tolist() == [1.0, 1.0, 1.0]
+    old = (tmp_path / "results.parquet").stat().st_mtime
+    part = tmp_path / "parts" / "cellA.jsonl"
+    part.write_text(
+        "".join(json.dumps({"cell_key": "cellA", "context_index": i, "vendi": 7.0}) + "\n" for i in range(3))
+    )
+    os.utime(part, (old + 5, old + 5))
+    assert read_results(tmp_path).vendi.tolist() == [7.0, 7.0, 7.0]
+    os.utime(tmp_path / "results.parquet", (old + 10, old + 10))  # a table written after the parts is read as is
+    assert read_results(tmp_path).vendi.tolist() == [1.0, 1.0, 1.0]

@@ -83,13 +83,15 @@ def write_json(obj, path: Path) -> None:
 
 
 def read_results(run_dir: Path) -> pd.DataFrame:
-    """The run's table: the Parquet file when it is complete, else rebuilt from the parts."""
+    """The run's table: the Parquet file when it is complete and no part is newer, else rebuilt from the parts (a
+    part replaced by another run's of the same size, when runs made in pieces are merged, is newer than the table)."""
     run_dir = Path(run_dir)
     p = run_dir / "results.parquet"
     store = RowStore(run_dir)
     n_parts = len(store.rows())
     if p.exists():
+        newest_part = max((f.stat().st_mtime for f in store.dir.glob("*.jsonl")), default=0.0)
         df = pd.read_parquet(p)
-        if len(df) >= n_parts:
+        if len(df) >= n_parts and p.stat().st_mtime >= newest_part:
             return df
     return store.table()
