@@ -8,7 +8,7 @@ arrays are exported here, the step budget is fitted there to the time left, and 
     python benchmarks/gpu_train.py export EnvSpheres3D-RobotPanda --dataset EnvSpheres3D-RobotPanda-cpu --out .gpu/s.npz
     # there (in the same call as the rest of the device work; several trainings can share the GPU: each is bound by
     # its own kernel launches, not by the GPU):
-    python benchmarks/gpu_train.py train .gpu/s.npz --profile gpu --deadline $((SECONDS_SINCE_EPOCH + 480)) --out $OUT
+    python benchmarks/gpu_train.py train .gpu/s.npz --profile gpu --deadline $(( $(date +%s) + 480 )) --out $OUT
 
 The task's training profile (``[training.gpu]``) gives every setting but the number of steps, which is chosen on the
 machine: a 200-step probe measures the training loop's steps/s and the setup's seconds, and the run takes the largest
