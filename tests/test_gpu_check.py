@@ -32,3 +32,23 @@ def test_gpu_check_runs_every_section_on_the_cpu(tmp_path):
     assert net["parameters"] > 1e6 and net["forward_batch100_fp32_ms"] > 0 and net["train_steps_per_s_batch32_bf16"] > 0
     tr = s["training"]
     assert tr["finite"] and tr["loads_on_cpu"] and tr["device_recorded"] == "cpu" and tr["steps"] == 10
+
+
+def test_gpu_train_rebuilds_the_reversed_copies_as_the_dataset_makes_them():
+    """benchmarks/gpu_train.py carries forward paths only and rebuilds the reversed copies there: its rule (start
+    three times, free rows, final configuration twice more; reversed) against the B-spline parametrization's own
+    free rows of the time-reversed control points (what mpd.data.dataset stores), on random end-effector-goal rows."""
+    import numpy as np
+
+    from mpd.tasks import load_task
+    from mpd.trajectory import make_parametrization
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import gpu_train
+
+    param = make_parametrization(load_task("EnvSpheres3D-RobotPanda"), "bspline")
+    rng = np.random.default_rng(0)
+    q_start, free = rng.normal(size=(5, 7)), rng.normal(size=(5, param.n_params - 5, 7))
+    full = np.concatenate([np.repeat(q_start[:, None], 3, 1), free, np.repeat(free[:, -1:], 2, 1)], 1)
+    assert np.array_equal(param.free_rows(full), free)
+    np.testing.assert_array_equal(gpu_train.reversed_rows(free, q_start), param.free_rows(full[:, ::-1]))
