@@ -126,10 +126,8 @@ def train(args) -> int:
     probe_path = train_model(
         arrays, args.kind, model_spec, probe, device=device, progress=False, cache=cache / "probe", shipped=False
     )
-    setup_s = (
-        time.perf_counter() - t - n / json.loads((Path(probe_path).parent / "meta.json").read_text())["steps_per_s"]
-    )
     rate = json.loads((Path(probe_path).parent / "meta.json").read_text())["steps_per_s"]  # the training loop's own
+    setup_s = time.perf_counter() - t - n / rate
     left = args.deadline - time.time() - setup_s
     steps = min(args.max_steps, fit_steps(rate, left)) if args.steps is None else args.steps
     summary.update(
