@@ -21,7 +21,8 @@ Sections: ``environment`` (torch, CUDA, device, capability), ``cuda_tests`` (pyt
 skipped), ``plans`` (MPD and prior-only plans of 100 trajectories, EnvSpheres3D with the Panda-sized network and
 EnvSimple2D, random weights of the configs' sizes: median wall time and breakdown), ``network`` (forward of 100 and
 training steps/s at batch 512, fp32 and bf16 autocast), ``training`` (a short real `train_model` on the device, its
-loss and steps/s, the checkpoint loaded back on the CPU).
+loss and steps/s, the checkpoint loaded back on the CPU), ``graphed_training`` (steps/s of the Panda-sized network's
+training step captured in a CUDA graph, batch 512 / 1024 / 2048, bf16 and fp32).
 """
 
 from __future__ import annotations
@@ -224,6 +225,58 @@ def network(device: str, rounds: int, train_batch: int = 512) -> dict:
     return out
 
 
+def graphed_training(device: str, batches=(512, 1024, 2048), steps: int = 100) -> dict:
+    """Training steps/s of the Panda-sized network with the step captured in a CUDA graph
+    (mpd.models.cuda_graph.GraphedStep, as train_model runs it on CUDA), per batch size and precision."""
+    import copy
+
+    import torch
+
+    from mpd.models.cuda_graph import GraphedStep
+    from mpd.models.diffusion import DiffusionModel
+    from mpd.models.train import make_optimizer
+    from mpd.tasks import load_task
+    from mpd.tasks.spec import TrainingSpec
+
+    if torch.device(device).type != "cuda":
+        return {"skipped": "no CUDA device"}
+    task = load_task("EnvSpheres3D-RobotPanda")
+    g = torch.Generator(device=device).manual_seed(0)
+    n = 8192
+    x = torch.rand(n, 24, task.dof, generator=g, device=device) * 2 - 1
+    ctx = {
+        "q_start": torch.rand(n, task.dof, generator=g, device=device) * 2 - 1,
+        "ee_pos": torch.rand(n, 3, generator=g, device=device),
+        "ee_rot": torch.linalg.qr(torch.randn(n, 3, 3, generator=g, device=device)).Q,
+    }
+    out = {}
+    for precision in ("bf16", "fp32"):
+        for b in batches:
+            torch.manual_seed(0)
+            net = DiffusionModel(task.dof, 24, "goal_ee_pose", task.spec.model).to(device).train()
+            ema = copy.deepcopy(net).requires_grad_(False)
+            ts = TrainingSpec(batch_size=b, steps=steps, lr=1e-3, ema_start=0, ema_every=1)
+            opt = make_optimizer(net, ts)
+            running = torch.zeros((), device=device)
+
+            def draw(b=b):
+                idx = torch.randint(n, (b,), generator=g, device=device)
+                return x[idx], {k: v[idx] for k, v in ctx.items()}
+
+            step = GraphedStep(net, ema, opt, draw, g, ts, {}, precision == "bf16", running)
+            for i in range(10):  # eager steps, the capture, replays
+                step(i, 1e-3)
+            _sync(device)
+            t = time.perf_counter()
+            for i in range(10, 10 + steps):
+                step(i, 1e-3)
+            _sync(device)
+            out[f"steps_per_s_batch{b}_{precision}"] = round(steps / (time.perf_counter() - t), 1)
+            out[f"loss_finite_batch{b}_{precision}"] = bool(torch.isfinite(running).item())
+            del net, ema, opt, step
+    return out
+
+
 def training(device: str, steps: int, batch_size: int = 256) -> dict:
     import numpy as np
     import torch
@@ -292,6 +345,7 @@ def main() -> int:
         "plans": lambda: plans(device, rounds, args.quick),
         "network": lambda: network(device, rounds, 32 if args.quick else 512),
         "training": lambda: training(device, steps, 32 if args.quick else 256),
+        "graphed_training": lambda: graphed_training(device, steps=20 if args.quick else 100),
     }
     if args.sections:
         unknown = set(args.sections) - set(sections)

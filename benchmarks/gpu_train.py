@@ -23,6 +23,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -123,9 +124,21 @@ def train(args) -> int:
     n = args.probe_steps
     probe = dataclasses.replace(base, steps=n, val_every=n, checkpoint_every=n)
     t = time.perf_counter()
-    probe_path = train_model(
-        arrays, args.kind, model_spec, probe, device=device, progress=False, cache=cache / "probe", shipped=False
-    )
+    try:  # on CUDA the step is captured in a CUDA graph (mpd.models.cuda_graph); should that fail, train eagerly
+        probe_path = train_model(
+            arrays, args.kind, model_spec, probe, device=device, progress=False, cache=cache / "probe", shipped=False
+        )
+    except Exception as e:  # noqa: BLE001 - the lease's minutes are better spent on an eager run than on nothing
+        if os.environ.get("MPD_CUDA_GRAPH") == "0" or not device.startswith("cuda"):
+            raise
+        summary["cuda_graph_error"] = f"{type(e).__name__}: {e}"[:2000]
+        print(f"captured probe failed ({summary['cuda_graph_error'][:300]}); training eagerly", flush=True)
+        os.environ["MPD_CUDA_GRAPH"] = "0"
+        shutil.rmtree(cache / "probe", ignore_errors=True)
+        t = time.perf_counter()
+        probe_path = train_model(
+            arrays, args.kind, model_spec, probe, device=device, progress=False, cache=cache / "probe", shipped=False
+        )
     rate = json.loads((Path(probe_path).parent / "meta.json").read_text())["steps_per_s"]  # the training loop's own
     setup_s = time.perf_counter() - t - n / rate
     left = args.deadline - time.time() - setup_s
@@ -151,6 +164,7 @@ def train(args) -> int:
         shutil.copy(Path(path).parent / "meta.json", args.out / f"{out_file.stem}.meta.json")
         summary.update(
             identity=meta.get("identity"),
+            cuda_graph=bool(meta.get("cuda_graph", False)),
             wall_s=round(wall, 1),
             steps_per_s=meta.get("steps_per_s"),
             final_train_loss=meta.get("final_train_loss"),

@@ -44,6 +44,7 @@ from mpd.models.checkpoint import (
     save_atomic,
 )
 from mpd.models.context import EE_GOAL, UNNORMALIZED_KEYS
+from mpd.models.cuda_graph import GraphedStep, graph_supported
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
 from mpd.models.diffusion import sampler_grid
 from mpd.models.normalizer import Normalizer
@@ -323,6 +324,7 @@ def train_model(
     cache: str | Path | None = None,
     stop_after: int | None = None,
     shipped: bool = True,
+    cuda_graph: bool | None = None,
 ) -> Path:
     """Train (or find) the model of this identity; return the path of its ``model.pt``.
 
@@ -331,6 +333,8 @@ def train_model(
     :func:`mpd.paths.cache_dir`). ``stop_after``: train at most this many steps in this call, save ``last.pt``
     and return *its* path (time-sliced training; used by the resume test). ``shipped``: take the model from the
     shipped priors (:mod:`mpd.models.shipped`, verified by hash) when one has this identity; False trains it.
+    ``cuda_graph``: capture the training step in a CUDA graph (:mod:`mpd.models.cuda_graph`; an execution mode, not
+    part of the identity); None: where supported (a diffusion model on CUDA, unless ``MPD_CUDA_GRAPH=0``).
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r} (known: {', '.join(KINDS)})")
@@ -449,31 +453,49 @@ def train_model(
             "(AVX512_BF16 / AMX); emulated bf16 is ~30x slower (MPD_BF16=emulate forces it)"
         )
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=arithmetic == "bf16")
+    if cuda_graph is None:
+        cuda_graph = graph_supported(kind, device)
+    elif cuda_graph and not (kind == "diffusion" and device.type == "cuda"):
+        raise ValueError(f"cuda_graph=True: only a diffusion training on CUDA is captured, not {kind} on {device}")
+    graphed = None
+    if cuda_graph:
+        graphed = GraphedStep(
+            net, ema, opt,
+            lambda: train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)),
+            gen, ts, loss_kwargs, arithmetic == "bf16", running,
+        )  # fmt: skip
+    if cuda_graph:  # recorded where used (the records of the eager trainings are as before)
+        record["cuda_graph"] = True
     t0 = time.perf_counter()
     net.train()
     with _deferred_sigint() as interrupted:
         while step < end:
-            idx = torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)
-            xb, cb = train.batch(idx)
-            if kind == "cvae" and ts.kl_warmup_steps > 0:
-                loss_kwargs["kl_scale"] = min(1.0, step / ts.kl_warmup_steps)
-            with autocast:
-                loss = net.loss(xb, cb, gen, **loss_kwargs)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if ts.grad_clip_norm > 0:
-                nn.utils.clip_grad_norm_(net.parameters(), ts.grad_clip_norm)
-            for g in opt.param_groups:
-                g["lr"] = learning_rate(ts, step)
-            opt.step()
-            step += 1
-            if step % ts.ema_every == 0:
-                _ema_update(ema, net, ts.ema_decay, copy_weights=step < ts.ema_start)
-            running += loss.detach()
+            if graphed is not None:  # the same step, captured: batch, loss, clipping, AdamW, EMA, running sum
+                graphed(step, learning_rate(ts, step))
+                step += 1
+            else:
+                idx = torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)
+                xb, cb = train.batch(idx)
+                if kind == "cvae" and ts.kl_warmup_steps > 0:
+                    loss_kwargs["kl_scale"] = min(1.0, step / ts.kl_warmup_steps)
+                with autocast:
+                    loss = net.loss(xb, cb, gen, **loss_kwargs)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if ts.grad_clip_norm > 0:
+                    nn.utils.clip_grad_norm_(net.parameters(), ts.grad_clip_norm)
+                for g in opt.param_groups:
+                    g["lr"] = learning_rate(ts, step)
+                opt.step()
+                step += 1
+                if step % ts.ema_every == 0:
+                    _ema_update(ema, net, ts.ema_decay, copy_weights=step < ts.ema_start)
+                running += loss.detach()
             running_n += 1
             if step % ts.val_every == 0 or step == ts.steps:
                 last_train = float(running) / running_n
-                running, running_n = torch.zeros((), device=device), 0
+                running.zero_()  # in place: a captured step adds to this very tensor
+                running_n = 0
                 if len(val):
                     last_val = _val_loss(ema, val, 4 * ts.batch_size, seed)
                 history.append({"step": step, "train_loss": last_train, "val_loss": last_val if len(val) else None})
