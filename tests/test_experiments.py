@@ -682,3 +682,30 @@ def test_read_results_rebuilds_a_table_older_than_a_replaced_part(tmp_path):
     assert read_results(tmp_path).vendi.tolist() == [7.0, 7.0, 7.0]
     os.utime(tmp_path / "results.parquet", (old + 10, old + 10))  # a table written after the parts is read as is
     assert read_results(tmp_path).vendi.tolist() == [1.0, 1.0, 1.0]
+
+
+def test_cvae_profile_trains_the_cvae_of_another_profile_than_the_diffusion_prior(tmp_path, monkeypatch):
+    """eval-panda-gpu-priors: the diffusion priors of the `gpu` profile (shipped) beside the CVAE of the `cpu` one;
+    the identities are the ones each profile gives alone (the CVAE is eval-panda-cpu's, the priors the shipped ones)."""
+    from mpd.experiments.artifacts import _model_identity, training_settings
+    from mpd.experiments.spec import TaskSettings
+    from mpd.tasks import load_task
+
+    monkeypatch.setenv("MPD_CACHE", str(tmp_path / "cache"))
+    gpu, cpu = load_spec("eval-panda-gpu-priors"), load_spec("eval-panda-cpu")
+    for name in ("EnvSpheres3D-RobotPanda", "EnvWarehouse-RobotPanda"):
+        task, ts, ts_cpu = load_task(name), gpu.data.tasks[name], cpu.data.tasks[name]
+        assert (ts.profile_for("diffusion"), ts.profile_for("cvae")) == ("gpu", "cpu")
+        assert training_settings(task, ts, (), "cvae") == task.training("cpu")
+        assert training_settings(task, ts, (), "diffusion") == task.training("gpu")
+        content = "0" * 16
+        assert _model_identity(task, ts, content, "cvae", "bspline", ()) == _model_identity(
+            task, ts_cpu, content, "cvae", "bspline", ()
+        )
+        assert _model_identity(task, ts, content, "diffusion", "bspline", ()) != _model_identity(
+            task, ts_cpu, content, "diffusion", "bspline", ()
+        )
+    assert TaskSettings(dataset="d", profile="gpu").profile_for("cvae") == "gpu"
+    needs = Runner(gpu).plan().needs
+    shipped = {n.name for n in needs if n.kind == "model" and n.detail == "shipped"}
+    assert any("58965bec51b8e17a" in s for s in shipped) and any("101f5acb14ab5f94" in s for s in shipped), shipped

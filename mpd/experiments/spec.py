@@ -74,6 +74,9 @@ class TaskSettings:
 
     dataset: str
     profile: str = "cpu"
+    # the CVAE's training profile where it differs from ``profile`` (e.g. diffusion priors of a GPU profile beside
+    # a CVAE trained on this CPU); None: ``profile``
+    cvae_profile: str | None = None
     train_steps: int | None = None  # override the profile's step count (e.g. a short demo training)
     n_contexts: int | None = None  # override the spec's number of evaluation contexts for this task
     # where the evaluation contexts come from (mpd.data.eval_contexts): "held-out" (the dataset's held-out paths,
@@ -86,6 +89,10 @@ class TaskSettings:
     # set by --scale (scale_spec), not in spec files: the dataset's contexts are multiplied by it (mpd.data, a
     # definition of its own with its own identity, never the full-size one)
     dataset_scale: float | None = None
+
+    def profile_for(self, kind: str) -> str:
+        """The training profile of a model of ``kind`` ("diffusion" or "cvae")."""
+        return self.cvae_profile if kind == "cvae" and self.cvae_profile is not None else self.profile
 
 
 @dataclass(frozen=True)

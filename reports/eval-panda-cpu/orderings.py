@@ -6,7 +6,11 @@ scene, the paper's CVAE-against-Dprior sentences (EnvWarehouse): Dprior more div
 goal. Each line: A - B, mean [95 % bootstrap interval] over the contexts where both are finite
 (``mpd.stats.paired``), and whether the interval excludes 0 in the claimed direction.
 
-    python reports/eval-panda-cpu/orderings.py [results.parquet]   # default: this report's
+    python reports/eval-panda-cpu/orderings.py [results.parquet ...]   # default: this report's
+
+Several tables: a later table's cells replace an earlier one's of the same task, method, parametrization and scene
+(e.g. this report's, then reports/eval-panda-gpu-priors/results.parquet: the methods of the gpu-profile diffusion
+priors beside the CVAE and the prior-free baselines of this one); the tables must share their test contexts.
 """
 
 from __future__ import annotations
@@ -39,8 +43,25 @@ CLAIMS = [
 ]
 
 
-def main(path: Path) -> None:
-    df = pd.read_parquet(path)
+CELL = ["task", "method", "parametrization", "extra_objects"]
+
+
+def combined(paths: list[Path]) -> pd.DataFrame:
+    """The tables' rows, a later table's cells replacing an earlier one's; the test contexts must be the same."""
+    df = pd.read_parquet(paths[0])
+    for path in paths[1:]:
+        new = pd.read_parquet(path)
+        for task, d in new.groupby("task"):
+            ours, theirs = set(df.contexts_hash[df.task == task]), set(d.contexts_hash)
+            if ours and ours != theirs:
+                raise SystemExit(f"{path}: {task}'s test contexts {sorted(theirs)} are not {sorted(ours)}")
+        keys = set(map(tuple, new[CELL].drop_duplicates().to_numpy()))
+        df = pd.concat([df[[k not in keys for k in map(tuple, df[CELL].to_numpy())]], new], ignore_index=True)
+    return df
+
+
+def main(paths: list[Path]) -> None:
+    df = combined(paths)
     df = df[df.parametrization == "bspline"]
     for (task, extra), d in df.groupby(["task", df.extra_objects.astype(bool)]):
         scene = "extra objects" if extra else "training scene"
@@ -66,4 +87,4 @@ def main(path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else HERE / "results.parquet")
+    main([Path(a) for a in sys.argv[1:]] or [HERE / "results.parquet"])
