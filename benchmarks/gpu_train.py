@@ -100,6 +100,19 @@ def load_arrays(path: Path):
     return TrainingArrays(x=x, context=ctx, split=split, **meta)
 
 
+def flat(shipped_file: Path, out: Path) -> Path:
+    """Move a shipped file and its lock (``<root>/models/<task>/``) to ``out`` itself: a device call brings back the
+    files of its output folder only a few levels deep (the lease of 2026-12-04 left a shipped prior out that way);
+    `mpd/priors/models/<task>/` is where they go here."""
+    out.mkdir(parents=True, exist_ok=True)
+    lock = shipped_file.with_name(shipped_file.name.removesuffix(".pt") + ".lock.json")
+    moved = out / shipped_file.name
+    shutil.move(shipped_file, moved)
+    shutil.move(lock, out / lock.name)
+    shutil.rmtree(shipped_file.parents[2], ignore_errors=True)
+    return moved
+
+
 def fit_steps(rate: float, seconds_left: float) -> int:
     """The largest multiple of 1000 steps that ends before the deadline at SAFETY x the measured rate (0: none)."""
     return int(max(0.0, rate * SAFETY * (seconds_left - MARGIN_S)) // 1000 * 1000)
@@ -167,7 +180,7 @@ def train(args) -> int:
         )
         wall = time.perf_counter() - t
         meta = json.loads((Path(path).parent / "meta.json").read_text())
-        out_file = shipped.ship(path, args.out, weights_dtype="bfloat16")
+        out_file = flat(shipped.ship(path, args.out / "ship", weights_dtype="bfloat16"), args.out)
         shutil.copy(Path(path).parent / "meta.json", args.out / f"{out_file.stem}.meta.json")
         summary.update(
             identity=meta.get("identity"),

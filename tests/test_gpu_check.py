@@ -52,3 +52,22 @@ def test_gpu_train_rebuilds_the_reversed_copies_as_the_dataset_makes_them():
     full = np.concatenate([np.repeat(q_start[:, None], 3, 1), free, np.repeat(free[:, -1:], 2, 1)], 1)
     assert np.array_equal(param.free_rows(full), free)
     np.testing.assert_array_equal(gpu_train.reversed_rows(free, q_start), param.free_rows(full[:, ::-1]))
+
+
+def test_gpu_train_brings_the_shipped_file_and_its_lock_to_the_top_of_its_output(tmp_path):
+    """A device call brings back its output folder's files only a few levels deep: gpu_train moves the shipped prior
+    (`<root>/models/<task>/<file>.pt`, as mpd.models.shipped.ship writes it) and its lock to the output folder
+    itself, byte for byte, and leaves nothing behind."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import gpu_train
+
+    folder = tmp_path / "out" / "ship" / "models" / "EnvSimple2D-RobotPointMass2D"
+    folder.mkdir(parents=True)
+    (folder / "diffusion-bspline-0123456789abcdef.pt").write_bytes(b"weights")
+    (folder / "diffusion-bspline-0123456789abcdef.lock.json").write_text("{}")
+    moved = gpu_train.flat(folder / "diffusion-bspline-0123456789abcdef.pt", tmp_path / "out")
+    assert moved == tmp_path / "out" / "diffusion-bspline-0123456789abcdef.pt" and moved.read_bytes() == b"weights"
+    assert (tmp_path / "out" / "diffusion-bspline-0123456789abcdef.lock.json").read_text() == "{}"
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "diffusion-bspline-0123456789abcdef.lock.json", "diffusion-bspline-0123456789abcdef.pt",
+    ]  # fmt: skip
