@@ -464,8 +464,7 @@ def train_model(
             lambda: train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)),
             gen, ts, loss_kwargs, arithmetic == "bf16", running,
         )  # fmt: skip
-    if cuda_graph:  # recorded where used (the records of the eager trainings are as before)
-        record["cuda_graph"] = True
+        record["cuda_graph"] = True  # recorded where used (the records of the eager trainings are as before)
     t0 = time.perf_counter()
     net.train()
     with _deferred_sigint() as interrupted:
