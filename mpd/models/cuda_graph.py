@@ -14,7 +14,6 @@ Only the diffusion loss is captured (the CVAE's KL warm-up weight is a Python fl
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections.abc import Callable
 
@@ -110,17 +109,3 @@ class GraphedStep:
             self._body()
         self.graph = graph
         graph.replay()  # the capture records the step without running it
-
-
-@contextlib.contextmanager
-def no_graph():
-    """Turn the capture off inside the block (``MPD_CUDA_GRAPH=0``)."""
-    old = os.environ.get("MPD_CUDA_GRAPH")
-    os.environ["MPD_CUDA_GRAPH"] = "0"
-    try:
-        yield
-    finally:
-        if old is None:
-            del os.environ["MPD_CUDA_GRAPH"]
-        else:
-            os.environ["MPD_CUDA_GRAPH"] = old
