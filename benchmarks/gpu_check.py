@@ -170,6 +170,20 @@ def plans(device: str, rounds: int, quick: bool = False) -> dict:
     return out
 
 
+def panda_batch(dof: int, n: int, generator, device: str):
+    """n random normalized Panda training samples (24 free control points) and their contexts, drawn on the CPU
+    generator and moved to ``device``: the network sections' inputs (timing does not depend on the values)."""
+    import torch
+
+    x = (torch.rand(n, 24, dof, generator=generator) * 2 - 1).to(device)
+    ctx = {
+        "q_start": (torch.rand(n, dof, generator=generator) * 2 - 1).to(device),
+        "ee_pos": torch.rand(n, 3, generator=generator).to(device),
+        "ee_rot": torch.linalg.qr(torch.randn(n, 3, 3, generator=generator)).Q.to(device),
+    }
+    return x, ctx
+
+
 def network(device: str, rounds: int, train_batch: int = 512) -> dict:
     import torch
 
@@ -183,13 +197,7 @@ def network(device: str, rounds: int, train_batch: int = 512) -> dict:
     g = torch.Generator(device="cpu").manual_seed(0)
 
     def batch(n):
-        x = (torch.rand(n, 24, task.dof, generator=g) * 2 - 1).to(device)
-        ctx = {
-            "q_start": (torch.rand(n, task.dof, generator=g) * 2 - 1).to(device),
-            "ee_pos": torch.rand(n, 3, generator=g).to(device),
-            "ee_rot": torch.linalg.qr(torch.randn(n, 3, 3, generator=g)).Q.to(device),
-        }
-        return x, ctx
+        return panda_batch(task.dof, n, g, device)
 
     x, ctx = batch(100)
     model.eval()
@@ -241,14 +249,9 @@ def graphed_training(device: str, batches=(512, 1024, 2048), steps: int = 100) -
     if torch.device(device).type != "cuda":
         return {"skipped": "no CUDA device"}
     task = load_task("EnvSpheres3D-RobotPanda")
-    g = torch.Generator(device=device).manual_seed(0)
     n = 8192
-    x = torch.rand(n, 24, task.dof, generator=g, device=device) * 2 - 1
-    ctx = {
-        "q_start": torch.rand(n, task.dof, generator=g, device=device) * 2 - 1,
-        "ee_pos": torch.rand(n, 3, generator=g, device=device),
-        "ee_rot": torch.linalg.qr(torch.randn(n, 3, 3, generator=g, device=device)).Q,
-    }
+    x, ctx = panda_batch(task.dof, n, torch.Generator(device="cpu").manual_seed(0), device)
+    g = torch.Generator(device=device).manual_seed(0)  # the training's draws, on the device (captured)
     out = {}
     for precision in ("bf16", "fp32"):
         for b in batches:
