@@ -504,6 +504,68 @@ def test_compiled_collision_pass_is_the_torch_path(key, dtype):
     torch.testing.assert_close(terms[True].g_q, terms[False].g_q, rtol=1e-5, atol=1e-6 * scale)
 
 
+@pytest.mark.parametrize("task_name", ["EnvSpheres3D-RobotPanda", "EnvWarehouse-RobotPanda"])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_compiled_collision_pass_with_the_merged_block_table_is_the_torch_path(task_name, dtype):
+    """Within the robot's reach the kernel reads one table where the grid box holds the reach ball: the fixed and
+    the extra objects' grids merged (the extra row where strictly closer) and cut to the nodes that can be nearest
+    to a point of the ball (elsewhere each set's distances apart from its gradients, whole). For
+    sphere centres spread over that ball, and exactly half-way between nodes (rounding ties), on the ball's
+    surface, and where the two object sets are equally far (the fixed set's gradient wins): the same active
+    entries, the same cost and centre gradients as the torch path's two full-grid lookups."""
+    from mpd.costs import collision_kernel
+
+    task = load_task(task_name)
+    env = task.env(extra_objects=True)
+    reach = task.robot.chain.reach
+    tables, clamp = collision_kernel.lookup_tables(env, dtype, reach)
+    grid = env.grid("fixed")
+    if task_name == "EnvSpheres3D-RobotPanda":  # its grid box holds the reach ball: one table, cut
+        assert (
+            not clamp and len(tables) == 1 and tables[0][0].size < 0.4 * grid.shape[0] * grid.shape[1] * grid.shape[2]
+        )
+    else:  # EnvWarehouse's box does not: the points are clamped into it, the two sets read apart
+        assert clamp and len(tables) == 2
+    g = torch.Generator().manual_seed(11)
+    S, N = 40, 3000
+    v = torch.randn(S, 3, N, generator=g, dtype=dtype)
+    X = v / v.norm(dim=1, keepdim=True) * reach * torch.rand(S, 1, N, generator=g, dtype=dtype) ** (1 / 3)
+    X[:, :, : N // 10] *= reach / X[:, :, : N // 10].norm(dim=1, keepdim=True)  # on the ball's surface
+    lo = torch.as_tensor(grid.lo, dtype=dtype).view(1, 3, 1)
+    ties = lo + (((X[:, :, N // 10 : N // 5] - lo) / grid.cell).floor() + 0.5) * grid.cell
+    X[:, :, N // 10 : N // 5] = ties * (ties.norm(dim=1, keepdim=True) <= reach) + X[:, :, N // 10 : N // 5] * (
+        ties.norm(dim=1, keepdim=True) > reach
+    )
+    # nodes where both sets are equally far (e.g. both far from everything or the same object)
+    fixed, extra = env.grid("fixed"), env.grid("extra")
+    nodes = torch.cartesian_prod(*[torch.arange(n) for n in fixed.shape])
+    nodes = nodes[torch.randperm(len(nodes), generator=g)[:200000]]
+    pos = torch.as_tensor(fixed.lo) + nodes.double() * fixed.cell
+    idx = (nodes * torch.as_tensor(fixed._strides)).sum(-1)
+    tie = (fixed._packed[idx, 0] == extra._packed[idx, 0]) & (pos.norm(dim=-1) <= reach)
+    assert tie.any()
+    tp = pos[tie][: N // 10].to(dtype)
+    X[0, :, N // 5 : N // 5 + len(tp)] = tp.t()
+    radius = torch.rand(S, 1, generator=g, dtype=dtype) * 0.3
+    w = torch.rand(N, generator=g, dtype=dtype)
+    value, flat, rows, _ = collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=reach)
+    d, gd = sdf_batch_last(env, X, "nearest")
+    relu = (radius - d).clamp_min(0)
+    assert torch.equal(flat, (relu > 0).reshape(-1).nonzero().squeeze(1))
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(value, (relu * w).sum(0), rtol=tol, atol=0)
+    ref_G = (relu > 0)[:, None] * (-2.0 * w) * gd
+    G = torch.zeros_like(ref_G)
+    G[flat // N, :, flat % N] = rows
+    torch.testing.assert_close(G, ref_G, rtol=tol, atol=0)
+    # ``max_entries``: the entries come back when there are at most that many, else only the value
+    E = flat.numel()
+    capped = collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=reach, max_entries=E)
+    assert torch.equal(capped[1], flat) and torch.equal(capped[2], rows) and torch.equal(capped[0], value)
+    over = collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=reach, max_entries=E - 1)
+    assert over[1] is None and over[2] is None and torch.equal(over[0], value)
+
+
 @pytest.mark.parametrize("key", ["panda_spheres", "planar4"])
 def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
     """The compiled passes split the configurations over threads; every split gives identical results."""

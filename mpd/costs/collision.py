@@ -51,11 +51,13 @@ class CollisionCost(Cost):
                 mw = chain.point_moments_weights(X.dtype)
                 self._consts[mkey] = None if mw is None else (*mw, chain.dof)
             moments = self._consts[mkey] if kin.frames_t is not None else None
+            # with the moments, the entries are only wanted for the sparse product
+            cap = int(SPARSE_FRACTION * S * N) if moments is not None else None
             per_config, flat, rows, H = collision_kernel.collision_pass(
-                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, moments
+                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, moments, cap
             )
             value = per_config.view(B, n).sum(-1)
-            if flat.numel() <= SPARSE_FRACTION * S * N:
+            if flat is not None and flat.numel() <= SPARSE_FRACTION * S * N:
                 g_q = spheres_vjp_sparse(self.robot, kin, flat, rows[:, :D], N)
             elif H is not None:
                 g_q = chain.vjp_from_moments(kin, H)

@@ -27,9 +27,10 @@ from mpd.envs.grid import GridSDF
 
 
 @njit(cache=True, nogil=True)
-def _nodes(X, s, c0, c1, zscale, lo, hi, cell, nmax, step, clamp, idx, out):
+def _nodes(X, s, c0, c1, zscale, lo, hi, cell, nmax, kmin, kmax, step, clamp, idx, out):
     """Row of the nearest node (``idx[c - c0]``) and the distance to the grid box (``out[c - c0]``) of sphere s's
-    centres in the columns c0 <= c < c1."""
+    centres in the columns c0 <= c < c1. The node is found in the whole grid's coordinates (``lo``, ``nmax``) and
+    read from the table's block ``kmin .. kmax`` of it (``step``: the block's strides)."""
     for c in range(c0, c1):
         x0 = X[s, 0, c]
         x1 = X[s, 1, c]
@@ -37,9 +38,9 @@ def _nodes(X, s, c0, c1, zscale, lo, hi, cell, nmax, step, clamp, idx, out):
         p0 = min(max(x0, lo[0]), hi[0]) if clamp else x0
         p1 = min(max(x1, lo[1]), hi[1]) if clamp else x1
         p2 = min(max(x2, lo[2]), hi[2]) if clamp else x2
-        u0 = min(np.rint((p0 - lo[0]) / cell), nmax[0])
-        u1 = min(np.rint((p1 - lo[1]) / cell), nmax[1])
-        u2 = min(np.rint((p2 - lo[2]) / cell), nmax[2])
+        u0 = min(max(min(np.rint((p0 - lo[0]) / cell), nmax[0]), kmin[0]), kmax[0]) - kmin[0]
+        u1 = min(max(min(np.rint((p1 - lo[1]) / cell), nmax[1]), kmin[1]), kmax[1]) - kmin[1]
+        u2 = min(max(min(np.rint((p2 - lo[2]) / cell), nmax[2]), kmin[2]), kmax[2]) - kmin[2]
         idx[c - c0] = np.int32(u0 * step[0] + u1 * step[1] + u2 * step[2])
         if clamp:
             out[c - c0] = np.sqrt((x0 - p0) * (x0 - p0) + (x1 - p1) * (x1 - p1) + (x2 - p2) * (x2 - p2))
@@ -47,31 +48,35 @@ def _nodes(X, s, c0, c1, zscale, lo, hi, cell, nmax, step, clamp, idx, out):
 
 @njit(cache=True, nogil=True)
 def _collision_pass(
-    X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, frame, lw, use_h, value, H, rows, flat, counts
+    X, c0, c1, zscale, r, w, coef, grid_a, grid_b, n_grids, clamp, frame, lw, use_h, value, H, rows, flat, counts, cap
 ):
     """One pass over the columns c0 .. c1 - 1 of the (S, N) grid of sphere centres X (S, 3, N), a sphere (row of
     centres) at a time.
 
-    ``grid_a``, ``grid_b``: (packed, lo, hi, cell, nmax, step) of the fixed and the extra objects' grids (``n_grids``
-    = 1: only ``grid_a`` is read). Each lookup is ``GridSDF.query(x, "nearest")``: the point clamped into the box
+    ``grid_a``, ``grid_b``: the lookup tables (:func:`lookup_tables`: distances, gradients, lo, hi, cell, nmax,
+    kmin, kmax, step) of the fixed and the extra objects (``n_grids`` = 1: only ``grid_a`` is read, the fixed
+    objects' or both sets merged). Each lookup is ``GridSDF.query(x, "nearest")``: the point clamped into the box
     (``clamp``; False when every point is known to lie inside), the nearest node's row, the point's distance to the
     box added. 2-D grids are stored as 3-D ones of one layer, and ``zscale`` = 0 drops the points' z. ``r`` (S,):
     radius + margin; ``w`` (N,): quadrature weight of each configuration's trajectory point; ``coef``: -weight.
     Adds to ``value`` (N,) (sum over spheres of relu(r - d) w); writes the active entries ``flat[:E]`` (s * N + c, in
-    order, ``counts[s]`` of them for sphere s) and their centre gradients ``coef w grad sdf`` as ``rows[:E]`` (E, 3);
-    returns E. With ``use_h`` it also adds each active gradient to the moments of its sphere's frame,
-    ``H[f - 1, m, :, c] += lw[s, m] g`` (``frame[s]`` = f, 0 = the root, which no joint moves): the Jacobian
-    product then needs no (S, 3, N) gradient array (:meth:`mpd.robots.chain.Chain.vjp_from_moments`). Disjoint
-    column ranges can run at once (threads): they write disjoint entries.
+    order, ``counts[s]`` of them for sphere s) and their centre gradients ``coef w grad sdf`` as ``rows[:E]`` (E, 3),
+    as long as E <= ``cap`` (beyond, entries are only counted); returns E. With ``use_h`` it also adds each active
+    gradient to the moments of its sphere's frame, ``H[f - 1, m, :, c] += lw[s, m] g`` (``frame[s]`` = f, 0 = the
+    root, which no joint moves): the Jacobian product then needs no (S, 3, N) gradient array
+    (:meth:`mpd.robots.chain.Chain.vjp_from_moments`). Disjoint column ranges can run at once (threads): they write
+    disjoint entries.
 
     Per sphere in simple loops that the compiler vectorizes: node rows, the distance gather, the depth, then the
-    few active entries (one loop with a data-dependent branch per entry was 5x slower).
+    few active entries (one loop with a data-dependent branch per entry was 5x slower). The distances are a table
+    of their own, apart from the gradients: the gather of every entry reads 4 bytes a node, the gradients are read
+    only where an entry is active.
     """
     S = X.shape[0]
     N = X.shape[2]
     n = c1 - c0
-    pa, loa, hia, cella, nmaxa, stepa = grid_a
-    pb, lob, hib, cellb, nmaxb, stepb = grid_b
+    da, ga, loa, hia, cella, nmaxa, kmina, kmaxa, stepa = grid_a
+    db, gb, lob, hib, cellb, nmaxb, kminb, kmaxb, stepb = grid_b
     # buffers of the column range, indexed c - c0
     ia = np.empty(n, np.int32)
     ib = np.empty(n, np.int32)
@@ -82,13 +87,13 @@ def _collision_pass(
     active = 0
     for s in range(S):
         rs = r[s]
-        _nodes(X, s, c0, c1, zscale, loa, hia, cella, nmaxa, stepa, clamp, ia, oa)
+        _nodes(X, s, c0, c1, zscale, loa, hia, cella, nmaxa, kmina, kmaxa, stepa, clamp, ia, oa)
         for k in range(n):
-            d[k] = pa[ia[k], 0] + oa[k]
+            d[k] = da[ia[k]] + oa[k]
         if n_grids > 1:  # extra objects: only where strictly closer
-            _nodes(X, s, c0, c1, zscale, lob, hib, cellb, nmaxb, stepb, clamp, ib, ob)
+            _nodes(X, s, c0, c1, zscale, lob, hib, cellb, nmaxb, kminb, kmaxb, stepb, clamp, ib, ob)
             for k in range(n):
-                e = pb[ib[k], 0] + ob[k]
+                e = db[ib[k]] + ob[k]
                 use_b[k] = e < d[k]
                 d[k] = min(e, d[k])
         for k in range(n):
@@ -100,43 +105,116 @@ def _collision_pass(
                 c = c0 + k
                 f = coef * w[c]
                 if n_grids > 1 and use_b[k]:
-                    g0 = f * pb[ib[k], 1]
-                    g1 = f * pb[ib[k], 2]
-                    g2 = f * pb[ib[k], 3]
+                    g0 = f * gb[ib[k], 0]
+                    g1 = f * gb[ib[k], 1]
+                    g2 = f * gb[ib[k], 2]
                 else:
-                    g0 = f * pa[ia[k], 1]
-                    g1 = f * pa[ia[k], 2]
-                    g2 = f * pa[ia[k], 3]
-                rows[active, 0] = g0
-                rows[active, 1] = g1
-                rows[active, 2] = g2
+                    g0 = f * ga[ia[k], 0]
+                    g1 = f * ga[ia[k], 1]
+                    g2 = f * ga[ia[k], 2]
+                if active < cap:
+                    rows[active, 0] = g0
+                    rows[active, 1] = g1
+                    rows[active, 2] = g2
+                    flat[active] = s * N + c
                 if use_h and fs > 0:
                     for m in range(4):
                         H[fs - 1, m, 0, c] += lw[s, m] * g0
                         H[fs - 1, m, 1, c] += lw[s, m] * g1
                         H[fs - 1, m, 2, c] += lw[s, m] * g2
-                flat[active] = s * N + c
                 active += 1
         counts[s] = active - before
     return active
 
 
-def _grid_args(grid: GridSDF, dtype: torch.dtype) -> tuple:
+def _padded(grid: GridSDF, dtype: torch.dtype) -> tuple[torch.Tensor, np.ndarray, np.ndarray, list[int]]:
+    """The grid's packed rows (nodes, 4) as a 3-D grid (a 2-D grid: one layer at z = 0 with a zero z gradient), its
+    lo and hi (3,) and its shape (3 entries)."""
     packed, lo, hi, _, _ = grid._consts(dtype, "cpu")
-    packed, lo, hi = packed.numpy(), lo.numpy(), hi.numpy()
+    lo, hi = lo.numpy(), hi.numpy()
     D = grid.dim
-    if D < 3:  # one layer at z = 0 with a zero z gradient: the kernel has one 3-D path
-        packed = np.concatenate([packed, np.zeros((packed.shape[0], 4 - packed.shape[1]), packed.dtype)], axis=1)
+    if D < 3:  # the kernel has one 3-D path
+        packed = torch.cat([packed, packed.new_zeros(packed.shape[0], 4 - packed.shape[1])], 1)
         pad = np.zeros(3 - D, dtype=lo.dtype)
         lo, hi = np.concatenate([lo, pad]), np.concatenate([hi, pad])
-    shape = list(grid.shape) + [1] * (3 - D)
+    return packed, lo, hi, list(grid.shape) + [1] * (3 - D)
+
+
+def _block(grid: GridSDF, reach: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The node range kmin .. kmax (3,) that contains the nearest node of every point within ``reach`` of the origin
+    (one node of slack each side for rounding); the whole grid when ``reach`` is None."""
+    shape = np.array(list(grid.shape) + [1] * (3 - grid.dim))
+    kmin, kmax = np.zeros(3, np.int64), shape - 1
+    if reach is not None:
+        D = grid.dim
+        kmin[:D] = np.maximum(0, np.floor((-reach - grid.lo) / grid.cell).astype(np.int64) - 1)
+        kmax[:D] = np.minimum(shape[:D] - 1, np.ceil((reach - grid.lo) / grid.cell).astype(np.int64) + 1)
+    return kmin, kmax
+
+
+def _block_rows(packed: torch.Tensor, shape: list[int], kmin: np.ndarray, kmax: np.ndarray) -> torch.Tensor:
+    """The rows (nodes, 4) of the grid's nodes kmin .. kmax, in the grid's order."""
+    return packed.view(*shape, 4)[tuple(slice(a, b + 1) for a, b in zip(kmin, kmax))].reshape(-1, 4)
+
+
+def _table(rows: torch.Tensor, lo, hi, shape, cell: float, kmin: np.ndarray, kmax: np.ndarray) -> tuple:
+    """A kernel lookup table from the rows of the block kmin .. kmax of a grid of ``shape``: its distances
+    (contiguous) and gradients apart, and what locates a node in it."""
     # the node index is accumulated in float64: exact for any grid
-    step = np.array([float(np.prod(shape[k + 1 :])) for k in range(3)])
-    nmax = np.array([float(n - 1) for n in shape], dtype=lo.dtype)
-    return (np.ascontiguousarray(packed), lo, hi, lo.dtype.type(grid.cell), nmax, step)
+    bshape = kmax - kmin + 1
+    step = np.array([float(np.prod(bshape[k + 1 :])) for k in range(3)])
+    dt = lo.dtype
+    return (
+        np.ascontiguousarray(rows[:, 0].numpy()),
+        np.ascontiguousarray(rows[:, 1:].numpy()),
+        lo,
+        hi,
+        dt.type(cell),
+        np.array([float(n - 1) for n in shape], dtype=dt),
+        kmin.astype(dt),
+        kmax.astype(dt),
+        step,
+    )
 
 
-_ARGS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # grid -> {dtype: kernel arguments}
+_TABLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # env -> {(dtype, reach): (tables, clamp)}
+
+
+def lookup_tables(env, dtype: torch.dtype, reach: float | None) -> tuple[list[tuple], bool]:
+    """The kernel's lookup tables of the environment's object sets and whether points need clamping into the grid
+    box (False when ``reach`` is known and every grid box contains the ball of that radius).
+
+    Made once per environment, dtype and reach. Two grids of the same nodes (the fixed and the extra objects'
+    grids share the environment's box) are merged into one table that holds, per node, the extra objects' row
+    where its distance is strictly smaller, else the fixed objects' (the rule of two lookups, so the same result
+    with half the reads; not when points are clamped). When no point needs clamping, each table keeps only the
+    block of nodes that can be nearest to a point within ``reach`` (EnvSpheres3D-RobotPanda: 145^3 of the 201^3
+    nodes): its distances fit this CPU's last-level cache."""
+    key = (dtype, reach)
+    per_env = _TABLES.setdefault(env, {})
+    if key in per_env:
+        return per_env[key]
+    grids = [
+        env.grid(name) for name, objs in (("fixed", env.fixed), ("extra", env.extra)) if objs is not None and len(objs)
+    ]
+    clamp = reach is None or not all(bool((g.lo <= -reach).all() and (g.hi >= reach).all()) for g in grids)
+    padded = [_padded(g, dtype) for g in grids]
+    blocks = [_block(g, None if clamp else reach) for g in grids]
+    # merged only without clamping: a point's distance to the box, added to both sets' distances, could round
+    # two unequal distances to equal ones, where the rule keeps the fixed objects' gradient
+    same = len(grids) == 2 and grids[0].shape == grids[1].shape and grids[0].cell == grids[1].cell
+    if same and not clamp and np.array_equal(grids[0].lo, grids[1].lo):
+        g0 = grids[0]
+        (pa, lo, hi, shape), (pb, _, _, _) = padded
+        a, b = (_block_rows(p, shape, *blocks[0]) for p in (pa, pb))
+        tables = [_table(torch.where((b[:, 0] < a[:, 0])[:, None], b, a), lo, hi, shape, g0.cell, *blocks[0])]
+    else:
+        tables = [
+            _table(_block_rows(p, shape, *blk), lo, hi, shape, g.cell, *blk)
+            for (p, lo, hi, shape), g, blk in zip(padded, grids, blocks)
+        ]
+    per_env[key] = (tables, clamp)
+    return tables, clamp
 
 
 def supported(X: torch.Tensor) -> bool:
@@ -152,25 +230,18 @@ def collision_pass(
     weight: float,
     reach: float | None = None,
     moments: tuple[np.ndarray, np.ndarray, int] | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    max_entries: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
     """For centres X (S, 3, N): (per-configuration value (N,), active entries (E,) as s * N + c, their centre
     gradients (E, 3), the frames' moments H (dof, 4, 3, N) or None); see the module docstring. ``X[:, D:]`` is
     ignored for a D < 3 task (its gradient rows are 0). ``reach``: a bound of |x| (the robot's reach around the
     origin); when every grid box contains that ball, no point needs clamping. ``moments``: (frame of each sphere,
-    its [l; 1] weights, dof) from :meth:`mpd.robots.chain.Chain.point_moments_weights`, to accumulate H."""
+    its [l; 1] weights, dof) from :meth:`mpd.robots.chain.Chain.point_moments_weights`, to accumulate H.
+    ``max_entries``: when there are more active entries than this, they are not returned (None, None in their
+    place; H then carries the gradient): the dense case's (E, 3) rows are neither written nor allocated."""
     S, _, N = X.shape
     D = env.dim
-    grids = []
-    clamp = False
-    for name, objs in (("fixed", env.fixed), ("extra", env.extra)):
-        if objs is None or not len(objs):
-            continue
-        grid = env.grid(name)
-        clamp = clamp or reach is None or not bool((grid.lo <= -reach).all() and (grid.hi >= reach).all())
-        per_dtype = _ARGS.setdefault(grid, {})
-        if X.dtype not in per_dtype:
-            per_dtype[X.dtype] = _grid_args(grid, X.dtype)
-        grids.append(per_dtype[X.dtype])
+    grids, clamp = lookup_tables(env, X.dtype, reach)
     value = torch.zeros(N, dtype=X.dtype)
     H = torch.zeros(moments[2], 4, 3, N, dtype=X.dtype) if moments is not None else None
     if not grids:
@@ -198,10 +269,14 @@ def collision_pass(
         Hn,
     )
     ranges = column_ranges(N)
-    rows = [np.empty((S * (c1 - c0), 3), Xn.dtype) for c0, c1 in ranges]
-    flats = [np.empty(S * (c1 - c0), np.int64) for c0, c1 in ranges]
+    # each range's buffers hold up to max_entries (all of a range's entries could be the ones returned)
+    caps = [S * (c1 - c0) if max_entries is None else min(S * (c1 - c0), max_entries) for c0, c1 in ranges]
+    rows = [np.empty((cap, 3), Xn.dtype) for cap in caps]
+    flats = [np.empty(cap, np.int64) for cap in caps]
     counts = [np.zeros(S, np.int64) for _ in ranges]
-    run_columns(lambda k, c0, c1: _collision_pass(Xn, c0, c1, *args, rows[k], flats[k], counts[k]), ranges)
+    run_columns(lambda k, c0, c1: _collision_pass(Xn, c0, c1, *args, rows[k], flats[k], counts[k], caps[k]), ranges)
+    if max_entries is not None and sum(int(c.sum()) for c in counts) > max_entries:
+        return value, None, None, H
     if len(ranges) == 1:
         e = int(counts[0].sum())
         return value, torch.from_numpy(flats[0][:e]), torch.from_numpy(rows[0][:e]), H
