@@ -290,8 +290,12 @@ def collision_pass(
     return value, torch.from_numpy(np.concatenate(fparts)), torch.from_numpy(np.concatenate(rparts)), H
 
 
-# columns per thread below which one thread does it all (thread start-up costs ~50 us)
-MIN_COLUMNS_PER_THREAD = 2048
+# Columns per thread below which one thread does it all. Inside a plan on 2 cores, splitting a Panda batch (100 x
+# 128 configurations) over two threads made each cost call slower, not faster (MPD plan 0.72-0.75 s with one thread
+# against 0.74-0.83 s with two, alternating in one process): the pass reads memory more than it computes, and the
+# second thread competes with torch's OpenMP workers, which spin after each parallel region. So only very large
+# batches are split.
+MIN_COLUMNS_PER_THREAD = 1 << 20
 _POOL: dict[int, ThreadPoolExecutor] = {}
 
 
