@@ -994,6 +994,33 @@ def test_bundled_shipped_priors_verify_against_their_locks():
         assert model.meta["identity"] == lock["identity"] == path.stem.rsplit("-", 1)[1]
 
 
+@pytest.mark.parametrize("four_d", [True, False])
+def test_one_step_and_context_for_the_batch_runs_the_conditioning_on_one_row(four_d):
+    """Sampling (one step and one context for every sample) computes the step embedding and the FiLM layers on one
+    row and broadcasts them: the same noise predictions as the step and context given per sample (to float32
+    rounding), whether the step is an int, a 0-d or a one-element tensor; a batch of steps still conditions each
+    sample on its own."""
+    spec = ModelSpec(unet_dim=32, unet_dim_mults=[1, 2, 4, 8], context_dim=128, context_layers=2)
+    torch.manual_seed(0)
+    model = DiffusionModel(7, 24, "goal_ee_pose", spec).eval()
+    model.unet.channels_last_2d = four_d
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(6, 24, 7, generator=g)
+    ctx1 = {
+        "q_start": torch.rand(1, 7, generator=g),
+        "ee_pos": torch.rand(1, 3, generator=g),
+        "ee_rot": torch.linalg.qr(torch.randn(1, 3, 3, generator=g)).Q,
+    }
+    ctx6 = {k: v.expand(6, *v.shape[1:]) for k, v in ctx1.items()}
+    with torch.no_grad():
+        ref = model(x, torch.full((6,), 17), ctx6)  # per sample: the conditioning on 6 rows
+        for t in (17, torch.tensor(17), torch.tensor([17])):
+            torch.testing.assert_close(model(x, t, ctx1), ref, rtol=1e-5, atol=1e-5)
+        steps = torch.tensor([0, 17, 17, 50, 99, 3])
+        per = model(x, steps, ctx1)
+        assert (per[0] - ref[0]).abs().max() > 1e-3 and torch.allclose(per[1:3], ref[1:3], rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize(
     "dof,horizon,kind,spec",
     [

@@ -31,7 +31,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from mpd.models.context import EE_GOAL, ContextEncoder
-from mpd.models.unet import SinusoidalPosEmb, TemporalUnet, as_step_tensor
+from mpd.models.unet import SinusoidalPosEmb, TemporalUnet, as_step_tensor, shared_step
 from mpd.tasks.spec import ModelSpec
 
 N_DIFFUSION_STEPS = 100
@@ -360,7 +360,8 @@ class DiffusionModel(nn.Module):
             if torch.is_grad_enabled():
                 raise RuntimeError("the compiled network is for inference: call it under torch.no_grad()")
             try:
-                eps = self.unet.compiled()(x_t, as_step_tensor(t, x_t.shape[0], x_t.device), emb)
+                rows = 1 if len(emb) == 1 and shared_step(t) else x_t.shape[0]  # the step as a tensor, not a constant
+                eps = self.unet.compiled()(x_t, as_step_tensor(t, rows, x_t.device), emb)
             except torch._dynamo.exc.BackendCompilerFailed as e:
                 raise RuntimeError(
                     "planner.network_compile: torch.compile could not compile the denoising network (on a CPU "
