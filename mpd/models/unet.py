@@ -29,9 +29,10 @@ from torch.nn import functional as F
 KERNEL_SIZE = 5
 N_GROUPS = 8
 # The compiled CPU network's kernels called from generated C++ instead of a Python wrapper: a pass of the Panda
-# U-Net (~100 kernels, 3 GFLOP at batch 100) spends ~5 ms of its ~23 ms in the Python wrapper on a 2-core Zen 4;
-# with it, a 15-step Dprior plan takes 0.27 s instead of 0.39 s, EnvSimple2D's 0.14 s instead of 0.19 s
-# (benchmarks/test_bench_plans.py). Compiling takes no longer (33 s instead of 43 s for EnvSimple2D, cold cache).
+# U-Net (~100 kernels, 3 GFLOP at batch 100) spent ~5 ms of its ~23 ms in the Python wrapper on a 2-core Zen 4;
+# with it, a 15-step Dprior plan took 0.27 s instead of 0.39 s, EnvSimple2D's 0.14 s instead of 0.19 s (before the
+# weights were frozen, :func:`_frozen`; benchmarks/test_bench_plans.py). Compiling takes no longer (33 s instead of
+# 43 s for EnvSimple2D, cold cache).
 CPU_CPP_WRAPPER = True
 
 
@@ -141,6 +142,19 @@ def pad_horizon(x: torch.Tensor, n_levels: int) -> torch.Tensor:
     return F.pad(x, (0, extra), mode="replicate") if extra else x
 
 
+def _frozen(fn: Callable) -> Callable:
+    """``fn`` (a torch.compile'd inference forward) called with dynamo's ``prepare_freezing``: dynamo reads the
+    global ``freezing`` setting, not the one given in ``torch.compile``'s options, to decide whether the module's
+    parameters enter the graph as constants; without it inductor's freezing has nothing to freeze (the weights stay
+    graph inputs: cast to bfloat16 and re-laid out on every call, never prepacked for oneDNN)."""
+
+    def call(*args):
+        with torch._dynamo.config.patch(prepare_freezing=True):
+            return fn(*args)
+
+    return call
+
+
 def shared_step(t: int | torch.Tensor) -> bool:
     """Whether ``t`` is one diffusion step for the whole batch (an int, a scalar or a one-element tensor)."""
     return not isinstance(t, torch.Tensor) or t.numel() == 1
@@ -221,13 +235,15 @@ class TemporalUnet(nn.Module):
         self.final = nn.Sequential(Conv1dBlock(top, top), nn.Conv1d(top, dof, 1))
         # the CPU inference path (no autograd): False runs the 1-D convolutions everywhere, its reference
         self.channels_last_2d = True
+        self._generation = 0  # of the compiled graph (see compiled)
 
     def compiled(self) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
         """This network's forward compiled by torch.compile (inductor) for inference: weights frozen into the graph
-        (``freezing``: constant-folded, prepacked for oneDNN on a CPU), one graph per input shape and autocast
-        state (``dynamic=False``). Call it under ``torch.no_grad()`` with the step as a ``(B,)`` tensor (a Python
-        int would be compiled as a constant). Kept on the module and rebuilt when a parameter changes (its version
-        counter or storage), since frozen weights would otherwise go stale. The first call per shape compiles
+        (``freezing``: constant-folded, cast and prepacked for oneDNN once on a CPU; see :func:`_frozen`), one graph
+        per input shape and autocast state (``dynamic=False``). Call it under ``torch.no_grad()`` with the step as a
+        tensor, ``(B,)`` or ``(1,)`` for one step for the whole batch (a Python int would be compiled as a
+        constant). Kept on the module and rebuilt when a parameter changes (its version counter or storage), since
+        frozen weights would otherwise go stale. The first call per shape compiles
         (~30-70 s on a 2-core CPU); ``PlannerSettings.network_compile`` turns it on for a planner. On a CPU the
         graph's kernels are called from generated C++ (inductor's ``cpp_wrapper``, :data:`CPU_CPP_WRAPPER`) rather
         than from Python."""
@@ -237,7 +253,13 @@ class TemporalUnet(nn.Module):
             options = {"freezing": True}
             if next(self.parameters()).device.type == "cpu":
                 options["cpp_wrapper"] = CPU_CPP_WRAPPER
-            held = self.__dict__["_compiled"] = (key, torch.compile(self.forward, dynamic=False, options=options))
+            # a new generation: dynamo's cached graphs of this forward hold the old weights as constants, and their
+            # guards (the same module, the same parameter objects) would still pass; the generation is guarded on
+            self._generation = getattr(self, "_generation", 0) + 1
+            held = self.__dict__["_compiled"] = (
+                key,
+                _frozen(torch.compile(self.forward, dynamic=False, options=options)),
+            )
         return held[1]
 
     def __getstate__(self) -> dict:
@@ -250,6 +272,10 @@ class TemporalUnet(nn.Module):
         if x.ndim != 3 or x.shape[-1] != self.dof:
             raise ValueError(f"expected x of shape (B, H, {self.dof}), got {tuple(x.shape)}")
         b, horizon, _ = x.shape
+        if (
+            torch.compiler.is_compiling() and getattr(self, "_generation", 0) < 0
+        ):  # read while tracing: dynamo guards on its value
+            raise AssertionError("unreachable")
         # one step and one context for the whole batch (sampling): the step embedding and every FiLM layer run on
         # one row, broadcast over the batch (the FiLM products on 100 equal rows were ~1 ms of an 18 ms Panda pass)
         rows = 1 if context_emb.shape[0] == 1 and shared_step(t) else b
