@@ -243,10 +243,9 @@ class TemporalUnet(nn.Module):
         per input shape and autocast state (``dynamic=False``). Call it under ``torch.no_grad()`` with the step as a
         tensor, ``(B,)`` or ``(1,)`` for one step for the whole batch (a Python int would be compiled as a
         constant). Kept on the module and rebuilt when a parameter changes (its version counter or storage), since
-        frozen weights would otherwise go stale. The first call per shape compiles
-        (~30-70 s on a 2-core CPU); ``PlannerSettings.network_compile`` turns it on for a planner. On a CPU the
-        graph's kernels are called from generated C++ (inductor's ``cpp_wrapper``, :data:`CPU_CPP_WRAPPER`) rather
-        than from Python."""
+        frozen weights would otherwise go stale. The first call per shape compiles (~30-70 s on a 2-core CPU);
+        ``PlannerSettings.network_compile`` turns it on for a planner. On a CPU the graph's kernels are called from
+        generated C++ (inductor's ``cpp_wrapper``, :data:`CPU_CPP_WRAPPER`) rather than from Python."""
         key = tuple((p._version, p.data_ptr(), p.dtype, p.device) for p in self.parameters())
         held = self.__dict__.get("_compiled")
         if held is None or held[0] != key:
@@ -272,10 +271,9 @@ class TemporalUnet(nn.Module):
         if x.ndim != 3 or x.shape[-1] != self.dof:
             raise ValueError(f"expected x of shape (B, H, {self.dof}), got {tuple(x.shape)}")
         b, horizon, _ = x.shape
-        if (
-            torch.compiler.is_compiling() and getattr(self, "_generation", 0) < 0
-        ):  # read while tracing: dynamo guards on its value
-            raise AssertionError("unreachable")
+        # read while tracing, so that dynamo guards on the compiled graph's generation (see compiled)
+        if torch.compiler.is_compiling() and getattr(self, "_generation", 0) < 0:
+            raise AssertionError("a compiled graph's generation is never negative")
         # one step and one context for the whole batch (sampling): the step embedding and every FiLM layer run on
         # one row, broadcast over the batch (the FiLM products on 100 equal rows were ~1 ms of an 18 ms Panda pass)
         rows = 1 if context_emb.shape[0] == 1 and shared_step(t) else b
