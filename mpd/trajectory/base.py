@@ -90,9 +90,8 @@ class LinearTrajectory:
                 mats["free" + k] = t(b @ self.a_free)
                 mats["start" + k] = t(b @ self.a_start)
                 mats["goal" + k] = t(b @ self.a_goal)
-            # stacked (3 n_points, n_free): all three derivatives in one product, and its transpose for gradients
+            # stacked (3 n_points, n_free): all three derivatives in one product (its transpose maps gradients back)
             mats["free_all"] = torch.cat([mats["free0"], mats["free1"], mats["free2"]], 0)
-            mats["free_all_T"] = mats["free_all"].T.contiguous()
             mats["a_free"] = t(self.a_free)
             mats["a_start"] = t(self.a_start)
             mats["a_goal"] = t(self.a_goal)
@@ -144,7 +143,7 @@ class LinearTrajectory:
             ],
             1,
         )  # (B, 3 n_points, dof)
-        return torch.einsum("hp,bpd->bhd", m["free_all_T"], g)  # one matrix product (see dense)
+        return torch.einsum("ph,bpd->bhd", m["free_all"], g)  # one matrix product (see dense)
 
     def _check(self, free, q_start, q_goal):
         if free.ndim != 3 or free.shape[1] != self.n_free:
