@@ -3,6 +3,7 @@ replaced, the frame-based Jacobian product, the reach bound, and the sparse prod
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -56,7 +57,8 @@ def test_fk_matches_batch_first_formulation(name, dtype):
     for got, want in zip((kin.axes, kin.origins, kin.points, kin.ee_pos, kin.ee_rot), ref):
         torch.testing.assert_close(got, want, **tol)
     # the public fields are views of the batch-last buffers
-    assert kin.points.data_ptr() == kin.points_t.data_ptr() and kin.frames_t.shape == (r.dof + 1, 4, 3, 3000)
+    assert kin.points.data_ptr() == kin.points_t.data_ptr()
+    assert kin.frames_t is None if r.chain.translational else kin.frames_t.shape == (r.dof + 1, 4, 3, 3000)
 
 
 @pytest.mark.parametrize("name", ROBOTS)
@@ -82,3 +84,62 @@ def test_select_equals_fk_of_the_subset(name):
     sub, ref = r.chain.select(r.kinematics(q, ee=False), idx), r.kinematics(q[idx])
     for f in ("axes", "origins", "points", "ee_pos", "ee_rot"):
         torch.testing.assert_close(getattr(sub, f), getattr(ref, f), rtol=0, atol=1e-14)
+
+
+def gantry():
+    """A translational chain that is not the identity: three prismatic joints with rotated origins and skew axes,
+    points on three links (one on the root), the end effector behind a fixed rotated joint."""
+    from mpd.robots.chain import ChainFrame, KinematicChain, rpy_to_matrix
+
+    def T(rpy, xyz):
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = rpy_to_matrix(rpy), xyz
+        return m
+
+    frames = [
+        ChainFrame("base", None, "fixed", np.eye(4), np.zeros(3)),
+        ChainFrame("l1", "j1", "prismatic", T((0.3, -0.2, 0.9), (0.1, 0.2, 0.3)), np.array([1.0, 0.5, 0.0])),
+        ChainFrame("l2", "j2", "prismatic", T((-0.7, 0.1, 0.4), (0.0, -0.4, 0.2)), np.array([0.0, 1.0, 2.0])),
+        ChainFrame("l2b", "f", "fixed", T((0.5, 0.5, -0.5), (0.05, 0.0, 0.1)), np.zeros(3)),
+        ChainFrame("l3", "j3", "prismatic", T((0.2, 0.3, -1.1), (0.3, 0.1, -0.2)), np.array([0.2, -1.0, 0.7])),
+        ChainFrame("tool", "g", "fixed", T((1.0, 0.0, 0.3), (0.0, 0.0, 0.15)), np.zeros(3)),
+    ]
+    links = ["base", "l1", "l1", "l2b", "l3", "tool"]
+    offsets = np.array([[0.1, 0, 0], [0.0, 0.1, 0.2], [0.3, -0.1, 0], [0, 0, 0.1], [0.2, 0.2, 0.2], [0, 0.05, 0]])
+    return KinematicChain(frames, links, offsets, "tool")
+
+
+def test_translational_chain_fk_and_jacobian_products_match_the_general_pass():
+    """The affine FK of a chain without revolute joints against the general pass (which it replaces for such chains)
+    and the batch-first formulation; its three Jacobian products against autograd through the general pass."""
+    chain = gantry()
+    assert chain.translational and not get_robot("RobotPanda").chain.translational
+    q = torch.randn(500, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    kin = chain.forward(q)
+    assert kin.frames_t is None
+    gen = chain._forward_general(q, points=True, ee=True, exact=False)
+    ref = batch_first_fk(chain, q)
+    for f, want in zip(("axes", "origins", "points", "ee_pos", "ee_rot"), ref):
+        torch.testing.assert_close(getattr(kin, f), getattr(gen, f), rtol=0, atol=1e-14)
+        torch.testing.assert_close(getattr(kin, f), want, rtol=0, atol=1e-14)
+    for points, ee in ((False, True), (True, False), (False, False)):
+        k = chain.forward(q, points=points, ee=ee)
+        assert (k.points is None) != points and (k.ee_pos is None) != ee
+        torch.testing.assert_close(k.origins, gen.origins, rtol=0, atol=1e-14)
+        if ee:
+            torch.testing.assert_close(k.ee_pos, gen.ee_pos, rtol=0, atol=1e-14)
+    sub = chain.select(kin, torch.arange(3, 500, 11))
+    torch.testing.assert_close(sub.ee_pos, gen.ee_pos[3::11], rtol=0, atol=1e-14)
+    # J^T g of the points: autograd through the general pass
+    g = torch.randn(6, 3, 500, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    qa = q.clone().requires_grad_(True)
+    (auto,) = torch.autograd.grad((chain._forward_general(qa, True, False, False).points_t * g).sum(), qa)
+    torch.testing.assert_close(chain.points_vjp(kin, g.permute(2, 0, 1)), auto, rtol=0, atol=1e-12)
+    torch.testing.assert_close(chain.points_vjp_frames(kin, g), auto, rtol=0, atol=1e-12)
+    # from the moments the collision kernel accumulates: H[f - 1, m, k] = sum over the points on frame f
+    frame, lw = chain.point_moments_weights(torch.float64)
+    H = torch.zeros(3, 4, 3, 500, dtype=torch.float64)
+    for s, f in enumerate(frame):
+        if f > 0:
+            H[f - 1] += torch.as_tensor(lw[s])[:, None, None] * g[s][None]
+    torch.testing.assert_close(chain.vjp_from_moments(kin, H), auto, rtol=0, atol=1e-12)

@@ -62,7 +62,8 @@ class Kinematics:
     ee_pos: torch.Tensor | None  # (B, 3)
     ee_rot: torch.Tensor | None  # (B, 3, 3)
     # The batch-last buffers the fields above are views of (None for a Kinematics built by hand): what the
-    # Jacobian products and the costs read, contiguous with the configurations innermost.
+    # Jacobian products and the costs read, contiguous with the configurations innermost (the constant axes of a
+    # translational chain: a broadcast view). A translational chain keeps no frames (``frames_t`` None).
     axes_t: torch.Tensor | None = None  # (dof, 3, B)
     origins_t: torch.Tensor | None = None  # (dof, 3, B)
     points_t: torch.Tensor | None = None  # (P, 3, B)
@@ -77,7 +78,7 @@ class Kinematics:
         points_t: torch.Tensor | None,
         ee_pos: torch.Tensor | None,
         ee_rot: torch.Tensor | None,
-        frames_t: torch.Tensor,
+        frames_t: torch.Tensor | None,
     ) -> Kinematics:
         """The batch-first fields as views of the batch-last buffers."""
         return cls(
@@ -180,6 +181,22 @@ class KinematicChain:
         self.ee_joint = j
         self._ee_fix = fix
         self._cache: dict[tuple, dict[str, torch.Tensor]] = {}
+        # A chain of prismatic joints only (the point mass, gantries) never rotates: every frame's rotation, every
+        # joint axis and the end-effector's rotation are constants, and the joint origins, end-effector position
+        # and points are affine in q: [origins; ee position; points] = b + A q, with b and A read off the general
+        # pass at q = 0 and q = e_j (exact up to float64 rounding). Its FK is dof fused multiply-adds (no frames
+        # are kept), and every Jacobian product is one with the constant axes.
+        self._affine: tuple[np.ndarray, ...] | None = None
+        if self.dof and not self.revolute.any():
+            q = torch.cat([torch.zeros(1, self.dof), torch.eye(self.dof)]).to(torch.float64)
+            k = self._forward_general(q, points=True, ee=True, exact=True)
+            rows = torch.cat(
+                [k.origins_t.reshape(-1, self.dof + 1), k.ee_pos.t(), k.points_t.reshape(-1, self.dof + 1)]
+            )
+            rows = rows.numpy()
+            b, A = rows[:, 0].copy(), rows[:, 1:] - rows[:, :1]
+            self._affine = (b, A, k.axes_t[:, :, 0].numpy().copy(), k.ee_rot[0].numpy().copy())
+            self._cache.clear()  # the constants made by that pass lack the affine ones
 
     @property
     def reach(self) -> float | None:
@@ -215,6 +232,14 @@ class KinematicChain:
                 "ee_p_row": t(self._ee_fix[None, :3, 3].copy()),
                 "revolute": torch.as_tensor(self.revolute, device=device)[:, None, None],
             }
+            if self._affine is not None:
+                b, A, z, ee_rot = self._affine
+                self._cache[key].update(
+                    aff_b=t(b[:, None].copy()),
+                    aff_A=t(A.T[:, :, None].copy()),
+                    aff_z=t(z[:, :, None]),
+                    aff_ee_rot=t(ee_rot),
+                )
         return self._cache[key]
 
     # ------------------------------------------------------------------ forward kinematics
@@ -224,6 +249,39 @@ class KinematicChain:
         data-generation path; slower)."""
         if q.shape[-1] != self.dof:
             raise ValueError(f"expected configurations with {self.dof} joints, got shape {tuple(q.shape)}")
+        if self._affine is not None and not exact:
+            return self._forward_affine(q, points, ee)
+        return self._forward_general(q, points, ee, exact)
+
+    def _forward_affine(self, q: torch.Tensor, points: bool, ee: bool) -> Kinematics:
+        """FK of a chain without revolute joints: [origins; ee position; points] = b + sum_j A_j q_j (no frames)."""
+        c = self._c(q.dtype, q.device)
+        B, dof, P = q.shape[0], self.dof, len(self.point_joint)
+        n = 3 * dof + 3 + (3 * P if points else 0)  # the rows computed (those of the ee position are few)
+        A, b = c["aff_A"][:, :n], c["aff_b"][:n]
+        # elementwise, not a (rows, dof) x (dof, B) product: the BLAS product of so short an inner dimension was up
+        # to 5x slower in some processes on the 2-core CPU (the same in all others)
+        out = torch.addcmul(b, A[0], q[:, 0])
+        for j in range(1, dof):
+            out.addcmul_(A[j], q[:, j])
+        origins = out[: 3 * dof].view(dof, 3, B)
+        pts_t = out[3 * dof + 3 :].view(P, 3, B) if points else None
+        ee_pos = out[3 * dof : 3 * dof + 3].t() if ee else None
+        ee_rot = c["aff_ee_rot"].expand(B, 3, 3) if ee else None
+        return Kinematics.from_batch_last(q, c["aff_z"].expand(dof, 3, B), origins, pts_t, ee_pos, ee_rot, None)
+
+    @property
+    def translational(self) -> bool:
+        """True for a chain without revolute joints: constant axes, affine FK, no frames kept (``frames_t`` None);
+        its Jacobian products need only the forces (row 3 of :meth:`vjp_from_moments`' moments)."""
+        return self._affine is not None
+
+    def _affine_vjp(self, F: torch.Tensor) -> torch.Tensor:
+        """(B, dof) J^T g of a chain without revolute joints from F (dof, 3, B), F_j = the sum of the gradients on
+        the points that joint j moves: (J^T g)_j = z_j . F_j."""
+        return (F * self._c(F.dtype, F.device)["aff_z"]).sum(1).t().contiguous()
+
+    def _forward_general(self, q: torch.Tensor, points: bool, ee: bool, exact: bool) -> Kinematics:
         c = self._c(q.dtype, q.device)
         mm = _exact.mm if exact else torch.matmul
         B, dof = q.shape[0], self.dof
@@ -311,10 +369,12 @@ class KinematicChain:
         """
         c = self._c(g.dtype, g.device)
         B = g.shape[0]
-        x = kin.points_t if kin.points_t is not None else kin.points.permute(1, 2, 0).contiguous()
         y = g.permute(1, 2, 0)
         if not y.is_contiguous():
             y = y.contiguous()
+        if self._affine is not None:
+            return self._affine_vjp((c["desc_t"] @ y.view(-1, 3 * B)).view(-1, 3, B))
+        x = kin.points_t if kin.points_t is not None else kin.points.permute(1, 2, 0).contiguous()
         m = torch.empty_like(y)  # (P, 3, B): c x g
         for k, (k1, k2) in enumerate(_NEXT):
             torch.mul(x[:, k1], y[:, k2], out=m[:, k])
@@ -369,6 +429,11 @@ class KinematicChain:
         f of [l_s; 1][m] g_s[k] (see :meth:`points_vjp_frames`); H is overwritten."""
         c = self._c(H.dtype, H.device)
         dof, B = self.dof, H.shape[3]
+        if self._affine is not None:  # constant axes: only the forces count
+            F = H[:, 3]
+            for j in range(dof - 2, -1, -1):
+                F[j] += F[j + 1]
+            return self._affine_vjp(F)
         T = kin.frames_t[1:]  # T[f, m, i] = [R_f | p_f][i, m]
         # M_f = sum_m T[:, m] x H[:, m], accumulated in place (fused multiply-adds on (dof, B) rows, no temporaries)
         M = H.new_empty(dof, 3, B)
