@@ -228,7 +228,9 @@ def test_composite_weighted_sum_and_ee_rule(preset, kind):
         assert ee[:, :-1].abs().max() == 0  # q(1) depends on the last free row only
     else:
         torch.testing.assert_close(res.grad, others + ee, rtol=1e-10, atol=1e-10)
-    assert {"dense", "fk", "chain_rule", *res.values} == set(res.timings)
+    # velocity, acceleration and joint limits run in one compiled pass, timed as "phase"
+    fused = {"velocity", "acceleration", "joint_limits"}
+    assert {"dense", "fk", "chain_rule", "phase", *(set(res.values) - fused)} == set(res.timings)
     assert all(t >= 0 for t in res.timings.values())
 
 
@@ -600,3 +602,50 @@ def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
     for threads in (3, 4):
         for a, b in zip(out[1], out[threads]):
             assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("kind", ["bspline", "waypoints"])
+@pytest.mark.parametrize("preset", ["official", "paper"])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("key", ["pointmass", "panda_spheres"])
+def test_fused_phase_pass_is_the_torch_path(key, dtype, preset, kind):
+    """Velocity, acceleration and joint limits in one compiled pass (``mpd.costs.phase_kernel``) against each cost's
+    torch ``__call__``: the unweighted values and the weighted gradients w.r.t. q, q', q''; the point mass has
+    position limits only, the Panda all three, both with violations (``_make_case``); then the whole cost
+    function with the pass and without it."""
+    from mpd.costs import phase_kernel
+
+    task, param, env, free, q_start, q_goal, ee_goal = case(key, kind)
+    free, q_start = free.to(dtype), q_start.to(dtype)
+    q_goal = None if q_goal is None else q_goal.to(dtype)
+    dense = param.dense(free, q_start, q_goal)
+    assert phase_kernel.supported(dense.stacked)
+    inp = CostInput(dense, task, env, None, "nearest")
+    weights = {"velocity": 0.7, "acceleration": 1.3, "joint_limits": 2.0}
+    costs = [COSTS[name](task, preset) for name in weights]
+    values, G = phase_kernel.phase_pass(
+        dense.stacked, costs[0].weights(inp), [(c.penalty(inp), weights[c.name]) for c in costs]
+    )
+    ref_g = torch.zeros_like(G)
+    tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    for c, v in zip(costs, values):
+        term = c(inp, weights[c.name])
+        assert (term.value > 0).any()
+        torch.testing.assert_close(v, term.value, **tol)
+        for k, gk in enumerate((term.g_q, term.g_dq, term.g_ddq)):
+            if gk is not None:
+                ref_g[:, k] += gk
+    torch.testing.assert_close(G, ref_g, **tol)
+    assert G[:, 0].abs().max() > 0 and G.stride() == dense.stacked.stride()
+    # the chain rule of the stacked gradient is the one of the three fields
+    torch.testing.assert_close(param.grad_to_free_stacked(G), param.grad_to_free(G[:, 0], G[:, 1], G[:, 2]), **tol)
+    # the cost function with and without the fused pass
+    cf = CostFunction(task, param, env, preset=preset, sdf_mode="nearest")
+    assert {c.name for c, _ in cf.fused} == set(weights)
+    with_pass = cf(free, q_start, q_goal, None if ee_goal is None else tuple(x.to(dtype) for x in ee_goal))
+    cf.fused = []
+    without = cf(free, q_start, q_goal, None if ee_goal is None else tuple(x.to(dtype) for x in ee_goal))
+    torch.testing.assert_close(with_pass.total, without.total, **tol)
+    torch.testing.assert_close(with_pass.grad, without.grad, **tol)
+    with pytest.raises(ValueError, match="two norm penalties on dense field 1"):
+        phase_kernel.phase_pass(dense.stacked, costs[0].weights(inp), [(costs[0].penalty(inp), 1.0)] * 2)

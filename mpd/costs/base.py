@@ -148,6 +148,10 @@ class Cost:
     def __call__(self, inp: CostInput, weight: float = 1.0) -> CostTerm:
         raise NotImplementedError
 
+    # Costs that are a per-point penalty on the dense fields also say so (a ``mpd.costs.phase_kernel.Penalty``), so
+    # that the cost function can run them together in one compiled pass; ``__call__`` stays their reference.
+    penalty = None
+
 
 def spheres_vjp_sparse(
     robot: Robot, kin: Kinematics, flat: torch.Tensor, g: torch.Tensor, n_configs: int

@@ -27,6 +27,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
+from mpd.costs import phase_kernel
 from mpd.costs.base import COSTS, PRESETS, SDF_MODES, Cost, CostInput
 from mpd.device import synchronize
 from mpd.envs import Environment
@@ -98,6 +99,8 @@ class CostFunction:
             for name, cls in COSTS.items()
             if w.get(name, 0.0) != 0 and cls.applicable(task)
         ]
+        # the per-point phase costs (velocity, acceleration, joint limits) in one compiled pass where it applies
+        self.fused = [(c, w) for c, w in self.terms if c.penalty is not None and c.name != "ee_pose"]
         # the authors' rule for end-effector goals: the last free row (the final configuration) follows the EE
         # cost only. q(1) depends on that row alone in both parametrizations (they interpolate it), so the EE
         # gradient maps to it with one coefficient and needs no second chain-rule product.
@@ -149,7 +152,20 @@ class CostFunction:
         g = [None, None, None]  # d(weighted sum)/d(q, q', q'')
         g_ee_last = None
         values: dict[str, torch.Tensor] = {}
-        for cost, weight in self.terms:
+        terms, G = self.terms, None
+        if self.fused and phase_kernel.supported(dense.stacked):
+            # G (B, 3, n, dof) holds the phase costs' gradients; the other costs add theirs into it
+            t0 = clock()
+            w = self.fused[0][0].weights(inp)
+            vals, G = phase_kernel.phase_pass(dense.stacked, w, [(c.penalty(inp), wt) for c, wt in self.fused])
+            for (cost, weight), v in zip(self.fused, vals):
+                values[cost.name] = v
+                total += weight * v
+            g = [G[:, 0], G[:, 1], G[:, 2]]
+            terms = [t for t in self.terms if t not in self.fused]
+            if timings is not None:
+                timings["phase"] = clock() - t0
+        for cost, weight in terms:
             t0 = clock()
             term = cost(inp, weight)
             values[cost.name] = term.value
@@ -163,7 +179,9 @@ class CostFunction:
             if timings is not None:
                 timings[cost.name] = clock() - t0
         t0 = clock()
-        if all(x is None for x in g):
+        if G is not None:
+            grad = self.param.grad_to_free_stacked(G)
+        elif all(x is None for x in g):
             grad = torch.zeros_like(free)
         else:
             grad = self.param.grad_to_free(*g)

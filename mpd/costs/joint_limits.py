@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from mpd.costs.base import Cost, CostInput, CostTerm, register
+from mpd.costs.phase_kernel import Penalty
 from mpd.tasks import Task
 
 MARGIN = 0.03  # eps of the authors' CostJointSpaceJointLimits (its class default; no config overrides it)
@@ -57,3 +58,7 @@ class JointLimitsCost(Cost):
             value += (0.5 * v.square().sum(-1) * w).sum(-1)
             grads.append(v * (weight * w)[:, None])
         return CostTerm(value, *grads)
+
+    def penalty(self, inp: CostInput) -> Penalty:
+        """This cost for the fused pass (:mod:`mpd.costs.phase_kernel`)."""
+        return Penalty(limits=tuple(self._limits(inp.dense.q, inp.dense.duration)))

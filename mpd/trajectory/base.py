@@ -30,6 +30,9 @@ class Dense:
     dq_ds: torch.Tensor
     ddq_ds2: torch.Tensor
     duration: float
+    # the (B, 3, n_points, dof) buffer the three fields are views of, when they come from one (the fused phase
+    # costs read it in one pass)
+    stacked: torch.Tensor | None = None
 
     @property
     def dq_dt(self) -> torch.Tensor:
@@ -92,6 +95,12 @@ class LinearTrajectory:
                 mats["goal" + k] = t(b @ self.a_goal)
             # stacked (3 n_points, n_free): all three derivatives in one product (its transpose maps gradients back)
             mats["free_all"] = torch.cat([mats["free0"], mats["free1"], mats["free2"]], 0)
+            # ... and with the start (and goal) configuration as extra rows of the operand: the whole dense
+            # trajectory in one product, (3 n_points, n_free + 1 (+ 1))
+            ends = [torch.cat([mats["start0"], mats["start1"], mats["start2"]])[:, None]]
+            if not self.ee_goal:
+                ends.append(torch.cat([mats["goal0"], mats["goal1"], mats["goal2"]])[:, None])
+            mats["dense_all_t"] = torch.cat([mats["free_all"], *ends], 1).t().contiguous()
             mats["a_free"] = t(self.a_free)
             mats["a_start"] = t(self.a_start)
             mats["a_goal"] = t(self.a_goal)
@@ -117,16 +126,16 @@ class LinearTrajectory:
         self._check(free, q_start, q_goal)
         m = self._t(free.dtype, free.device)
         B, n = free.shape[0], self.n_points
-        # one product for the three derivatives; einsum makes it one matrix product over the whole batch (a
-        # broadcast ``@`` is a batched product of 100 small ones: 0.74 ms against 0.13 ms for 100 Panda trajectories)
-        allq = torch.einsum("ph,bhd->bpd", m["free_all"], free).view(B, 3, n, -1)
-        out = []
-        for k in range(3):
-            x = allq[:, k] + m[f"start{k}"][None, :, None] * q_start[:, None, :]
-            if not self.ee_goal:
-                x = x + m[f"goal{k}"][None, :, None] * q_goal[:, None, :]
-            out.append(x)
-        return Dense(out[0], out[1], out[2], self.duration)
+        # one product for the three derivatives and the start and goal terms, over the whole batch: rows (joint,
+        # trajectory) of the operand times the stacked basis, (dof B, n_free + 2) x (n_free + 2, 3 n). The fields
+        # are views of that (dof, B, 3, n) buffer: per joint and trajectory the points are contiguous, the layout
+        # the fused phase costs (:mod:`mpd.costs.phase_kernel`) and the chain rule read.
+        ends = [q_start[:, None]] if self.ee_goal else [q_start[:, None], q_goal[:, None]]
+        a = torch.cat([free, *ends], 1)  # (B, n_free + 2, dof)
+        dof = a.shape[2]
+        out = torch.mm(a.permute(2, 0, 1).reshape(dof * B, -1), m["dense_all_t"]).view(dof, B, 3, n)
+        stacked = out.permute(1, 2, 3, 0)  # (B, 3, n, dof)
+        return Dense(stacked[:, 0], stacked[:, 1], stacked[:, 2], self.duration, stacked)
 
     def grad_to_free(
         self, g_q: torch.Tensor | None, g_dq: torch.Tensor | None = None, g_ddq: torch.Tensor | None = None
@@ -144,6 +153,17 @@ class LinearTrajectory:
             1,
         )  # (B, 3 n_points, dof)
         return torch.einsum("ph,bpd->bhd", m["free_all"], g)  # one matrix product (see dense)
+
+    def grad_to_free_stacked(self, G: torch.Tensor) -> torch.Tensor:
+        """:meth:`grad_to_free` of the three gradients stacked as (B, 3, n_points, dof) (no concatenation); one
+        product in :meth:`dense`'s (dof, B, 3, n) memory layout when G has it (as ``torch.empty_like`` of the
+        stacked fields does)."""
+        m = self._t(G.dtype, G.device)
+        B, _, n, dof = G.shape
+        Gj = G.permute(3, 0, 1, 2)  # (dof, B, 3, n)
+        if not Gj.is_contiguous():
+            return torch.einsum("ph,bpd->bhd", m["free_all"], G.reshape(B, 3 * n, dof))
+        return torch.mm(Gj.view(dof * B, 3 * n), m["free_all"]).view(dof, B, -1).permute(1, 2, 0).contiguous()
 
     def _check(self, free, q_start, q_goal):
         if free.ndim != 3 or free.shape[1] != self.n_free:
