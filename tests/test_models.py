@@ -1113,3 +1113,20 @@ def test_compiled_inference_matches_eager_follows_new_weights_and_compiles_once_
     assert "_compiled" not in copy.deepcopy(model).unet.__dict__
     with pytest.raises(RuntimeError, match="no_grad"):
         model(x, 10, ctx, compiled=True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_one_exponential_mish_is_mish(dtype):
+    """The compiled network's Mish (one exponential) against torch's: values and gradients over the whole range,
+    the switch to the identity included; no inf or NaN where e^x (e^x + 2) would overflow."""
+    from mpd.models.unet import MISH_LINEAR_FROM, mish
+
+    x = torch.cat([torch.linspace(-120, 120, 20001, dtype=dtype), torch.tensor([0.0, MISH_LINEAR_FROM], dtype=dtype)])
+    x = torch.cat([x, torch.nextafter(x[-1:], x[-1:] + 1), torch.nextafter(x[-1:], x[-1:] - 1)]).requires_grad_(True)
+    got, want = mish(x), torch.nn.functional.mish(x)
+    eps = torch.finfo(dtype).eps
+    torch.testing.assert_close(got, want, rtol=8 * eps, atol=8 * eps)
+    (g_got,) = torch.autograd.grad(got.sum(), x)
+    (g_want,) = torch.autograd.grad(want.sum(), x)
+    assert torch.isfinite(g_got).all()
+    torch.testing.assert_close(g_got, g_want, rtol=64 * eps, atol=64 * eps)
