@@ -86,9 +86,10 @@ def test_select_equals_fk_of_the_subset(name):
         torch.testing.assert_close(getattr(sub, f), getattr(ref, f), rtol=0, atol=1e-14)
 
 
-def gantry():
+def gantry(revolute_middle: bool = False):
     """A translational chain that is not the identity: three prismatic joints with rotated origins and skew axes,
-    points on three links (one on the root), the end effector behind a fixed rotated joint."""
+    points on three links (one on the root), the end effector behind a fixed rotated joint; with ``revolute_middle``
+    its second joint is revolute (a chain of both kinds, on the general pass)."""
     from mpd.robots.chain import ChainFrame, KinematicChain, rpy_to_matrix
 
     def T(rpy, xyz):
@@ -99,7 +100,13 @@ def gantry():
     frames = [
         ChainFrame("base", None, "fixed", np.eye(4), np.zeros(3)),
         ChainFrame("l1", "j1", "prismatic", T((0.3, -0.2, 0.9), (0.1, 0.2, 0.3)), np.array([1.0, 0.5, 0.0])),
-        ChainFrame("l2", "j2", "prismatic", T((-0.7, 0.1, 0.4), (0.0, -0.4, 0.2)), np.array([0.0, 1.0, 2.0])),
+        ChainFrame(
+            "l2",
+            "j2",
+            "revolute" if revolute_middle else "prismatic",
+            T((-0.7, 0.1, 0.4), (0.0, -0.4, 0.2)),
+            np.array([0.0, 1.0, 2.0]),
+        ),
         ChainFrame("l2b", "f", "fixed", T((0.5, 0.5, -0.5), (0.05, 0.0, 0.1)), np.zeros(3)),
         ChainFrame("l3", "j3", "prismatic", T((0.2, 0.3, -1.1), (0.3, 0.1, -0.2)), np.array([0.2, -1.0, 0.7])),
         ChainFrame("tool", "g", "fixed", T((1.0, 0.0, 0.3), (0.0, 0.0, 0.15)), np.zeros(3)),
@@ -143,3 +150,29 @@ def test_translational_chain_fk_and_jacobian_products_match_the_general_pass():
         if f > 0:
             H[f - 1] += torch.as_tensor(lw[s])[:, None, None] * g[s][None]
     torch.testing.assert_close(chain.vjp_from_moments(kin, H), auto, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("name", [*ROBOTS, "mixed"])
+def test_compiled_fk_pass_is_the_torch_pass(name, dtype, monkeypatch):
+    """The compiled FK (``mpd.robots.fk_kernel``) against the torch pass it replaces on the CPU: frames, axes, origins,
+    points and the end-effector pose; the same products term by term, so equal to the last bits that a BLAS kernel's
+    own order of a 3- or 4-term sum can change. Batches that are not a multiple of the kernel's block included."""
+    from mpd.robots.chain import KinematicChain
+
+    chain = gantry(revolute_middle=True) if name == "mixed" else get_robot(name).chain
+    q = torch.randn(1500, chain.dof, generator=torch.Generator().manual_seed(8), dtype=dtype) * 1.5
+    got = chain.forward(q)
+    monkeypatch.setattr(KinematicChain, "compiled", False)
+    want = chain.forward(q)
+    if chain.translational:
+        assert got.frames_t is None and want.frames_t is None
+    tol = {"rtol": 0, "atol": 2e-6 if dtype == torch.float32 else 1e-14}
+    for f in ("frames_t", "axes_t", "origins_t", "points_t", "ee_pos", "ee_rot"):
+        if getattr(want, f) is not None:
+            torch.testing.assert_close(getattr(got, f), getattr(want, f), **tol)
+    for n in (0, 1, 513):  # an empty batch, one configuration, one past a block
+        monkeypatch.setattr(KinematicChain, "compiled", True)
+        k = chain.forward(q[:n], ee=False)
+        monkeypatch.setattr(KinematicChain, "compiled", False)
+        torch.testing.assert_close(k.points_t, chain.forward(q[:n], ee=False).points_t, **tol)

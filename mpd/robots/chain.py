@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from mpd.robots import exact as _exact
+from mpd.robots import fk_kernel
 
 _NEXT = ((1, 2), (2, 0), (0, 1))  # component k of a x b is a[k1] b[k2] - a[k2] b[k1]
 
@@ -98,11 +99,16 @@ class Kinematics:
 class KinematicChain:
     """A serial chain with points attached to its links.
 
+    ``compiled`` (class attribute): the CPU FK of float32 / float64 configurations without autograd runs as one
+    compiled pass (:mod:`mpd.robots.fk_kernel`); False: the torch pass, its reference, everywhere.
+
     Args:
         frames: the chain from the root link to the last link, see :class:`ChainFrame`.
         point_links / point_offsets: the link and link-frame position of every attached point.
         ee_link: the link whose pose is the end-effector pose.
     """
+
+    compiled: bool = True
 
     def __init__(
         self,
@@ -270,6 +276,14 @@ class KinematicChain:
         ee_rot = c["aff_ee_rot"].expand(B, 3, 3) if ee else None
         return Kinematics.from_batch_last(q, c["aff_z"].expand(dof, 3, B), origins, pts_t, ee_pos, ee_rot, None)
 
+    def _kernel_points(self, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+        """(frame (P,), [l; 1] weights (P, 4)) of the points for the compiled FK pass (empty without points)."""
+        key = ("kernel_points", dtype)
+        if key not in self._cache:
+            mw = self.point_moments_weights(dtype)
+            self._cache[key] = mw if mw is not None else (np.zeros(0, np.int64), np.zeros((0, 4)))
+        return self._cache[key]
+
     @property
     def translational(self) -> bool:
         """True for a chain without revolute joints: constant axes, affine FK, no frames kept (``frames_t`` None);
@@ -285,6 +299,13 @@ class KinematicChain:
         c = self._c(q.dtype, q.device)
         mm = _exact.mm if exact else torch.matmul
         B, dof = q.shape[0], self.dof
+        if self.compiled and not exact and fk_kernel.supported(q) and (self._point_blocks is not None or not points):
+            # the compiled pass (the torch lines below are its reference)
+            frame, W = self._kernel_points(q.dtype)
+            qt = q.t().contiguous()
+            F, axes, origins, pts_t = fk_kernel.fk_pass(c["joint_t"], self.revolute, c["axes"], qt, W, frame, points)
+            ee_pos, ee_rot = self._ee_pose(F, c) if ee else (None, None)
+            return Kinematics.from_batch_last(q, axes, origins, pts_t, ee_pos, ee_rot, F)
         # Frames, batch-last: F[f, b, a, :] = R_f[a, b] (b < 3) and F[f, 3, a, :] = p_f[a], so that F[f]
         # viewed as (4, 3B) is the (transposed) [R | p] block of every configuration, and right-multiplying a
         # frame by a constant is one product with a long inner dimension.
