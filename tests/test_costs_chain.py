@@ -84,6 +84,9 @@ def test_select_equals_fk_of_the_subset(name):
     sub, ref = r.chain.select(r.kinematics(q, ee=False), idx), r.kinematics(q[idx])
     for f in ("axes", "origins", "points", "ee_pos", "ee_rot"):
         torch.testing.assert_close(getattr(sub, f), getattr(ref, f), rtol=0, atol=1e-14)
+    no_points = r.chain.select(r.kinematics(q, ee=False), idx, points=False)
+    assert no_points.points is None
+    torch.testing.assert_close(no_points.ee_pos, ref.ee_pos, rtol=0, atol=1e-14)
 
 
 def gantry(revolute_middle: bool = False):

@@ -87,13 +87,14 @@ class CostInput:
         return self._kin
 
     def last_kinematics(self) -> Kinematics:
-        """Kinematics of the final configuration q(1) of every trajectory, with the end-effector pose: taken from
-        :meth:`kinematics` when that has run (the collision costs run first), else one FK of B configurations."""
+        """Kinematics of the final configuration q(1) of every trajectory, with the end-effector pose and without the
+        attached points: taken from :meth:`kinematics` when that has run (the collision costs run first), else one
+        FK of B configurations."""
         if self._last_kin is None:
             B, n, _ = self.shape
             if self._kin is not None:
                 idx = torch.arange(n - 1, B * n, n, device=self.dense.q.device)
-                self._last_kin = self.robot.chain.select(self._kin, idx)
+                self._last_kin = self.robot.chain.select(self._kin, idx, points=False)
             else:
                 self._last_kin = self.robot.kinematics(self.dense.q[:, -1].contiguous(), spheres=False, ee=True)
         return self._last_kin

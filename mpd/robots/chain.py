@@ -369,15 +369,16 @@ class KinematicChain:
         ee_pos = (F[self.ee_joint + 1, 3] + mm(c["ee_p_row"], Re).view(3, B)).t()
         return ee_pos, ee_rot
 
-    def select(self, kin: Kinematics, idx: torch.Tensor) -> Kinematics:
+    def select(self, kin: Kinematics, idx: torch.Tensor, points: bool = True) -> Kinematics:
         """The kinematics of the configurations ``idx`` of a batch, end-effector pose included: a gather of the
         batch-last buffers instead of a second FK pass (the costs need the final configurations' EE pose, whose
-        frames the collision costs' FK of all configurations already holds)."""
+        frames the collision costs' FK of all configurations already holds). ``points``: False leaves the attached
+        points out (the largest of the buffers; the end-effector cost does not read them)."""
         if kin.frames_t is None:
-            return self.forward(kin.q.index_select(0, idx))
+            return self.forward(kin.q.index_select(0, idx), points=points)
         F = kin.frames_t.index_select(3, idx)
         axes, origins = kin.axes_t.index_select(2, idx), kin.origins_t.index_select(2, idx)
-        pts = None if kin.points_t is None else kin.points_t.index_select(2, idx)
+        pts = None if kin.points_t is None or not points else kin.points_t.index_select(2, idx)
         ee_pos, ee_rot = self._ee_pose(F, self._c(F.dtype, F.device))
         return Kinematics.from_batch_last(kin.q.index_select(0, idx), axes, origins, pts, ee_pos, ee_rot, F)
 
