@@ -50,6 +50,7 @@ class CollisionCost(Cost):
             if mkey not in self._consts:
                 mw = chain.point_moments_weights(X.dtype)
                 self._consts[mkey] = None if mw is None else (*mw, chain.dof)
+            # the moments need the frames, except on a translational chain (its product reads only the forces)
             moments = self._consts[mkey] if kin.frames_t is not None or chain.translational else None
             # with the moments, the entries are only wanted for the sparse product
             cap = int(SPARSE_FRACTION * S * N) if moments is not None else None

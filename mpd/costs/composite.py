@@ -2,7 +2,9 @@
 
 One evaluation builds the dense trajectories once, the robot's kinematics once (lazily, shared by the
 collision costs), lets every active cost add its gradient w.r.t. the dense q, q', q'', and maps the sum to the
-free rows with a single ``grad_to_free`` product.
+free rows with a single ``grad_to_free`` product. On a CPU the per-point phase costs (velocity, acceleration,
+joint limits) run together in one compiled pass (:mod:`mpd.costs.phase_kernel`, timed as ``phase``) that writes
+the stacked gradient buffer the other costs add into.
 
 Where the presets differ (each cost's module says more):
 
@@ -39,8 +41,9 @@ from mpd.trajectory import LinearTrajectory
 @dataclass
 class CostResult:
     """``total`` (B,) = sum of weight * value; ``grad`` (B, n_free, dof) its gradient w.r.t. the free rows;
-    ``values`` the unweighted value (B,) of each active cost; ``timings`` seconds per cost (and ``fk``,
-    ``chain_rule``) when profiling, else None."""
+    ``values`` the unweighted value (B,) of each active cost; ``timings`` seconds per cost (and ``dense``, ``fk``,
+    ``chain_rule``; ``phase`` for the costs of the fused pass, which then have no entry of their own) when
+    profiling, else None."""
 
     total: torch.Tensor
     grad: torch.Tensor
