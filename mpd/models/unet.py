@@ -317,6 +317,7 @@ class TemporalUnet(nn.Module):
         four_d = self.channels_last_2d and x.device.type == "cpu" and not torch.is_grad_enabled()
         if four_d:
             h = h.unsqueeze(2).contiguous(memory_format=torch.channels_last)
+        # compiled: every block's FiLM from one product; eager: None for every block (each computes its own)
         films = self._films(cond) if torch.compiler.is_compiling() else iter(lambda: None, 0)
         skips = []
         for i, (res1, res2, down) in enumerate(self.downs):
