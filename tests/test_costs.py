@@ -474,10 +474,8 @@ def test_compiled_collision_pass_is_the_torch_path(key, dtype):
     radius = (task.robot.sphere_radii + 0.05).to(X)[:, None]
     w = torch.rand(dense.q.shape[1], generator=g, dtype=dtype)
     chain = task.robot.chain
-    frame, lw = chain.point_moments_weights(dtype)
-    value, flat, rows, H = collision_kernel.collision_pass(
-        env, X, radius, w, 3.0, reach=None, moments=(frame, lw, chain.dof)
-    )
+    frames = (chain.point_joint + 1, chain.dof)
+    value, flat, rows, _ = collision_kernel.collision_pass(env, X, radius, w, 3.0, reach=None, frames=frames)
     # the torch path (CollisionCost's reference lines)
     d, gd = sdf_batch_last(env, X[:, :D], "nearest")
     a = radius - d
@@ -491,10 +489,16 @@ def test_compiled_collision_pass_is_the_torch_path(key, dtype):
     G = torch.zeros_like(ref_G)
     G[flat // N, :, flat % N] = rows
     torch.testing.assert_close(G, ref_G, rtol=tol, atol=0)
-    # the moments accumulated in the pass give the Jacobian product of the (S, 3, N) gradient
+    # the frames' sums accumulated in the pass (gradients, their moments about the origin from the centres) give
+    # the Jacobian product of the (S, 3, N) gradient, on the robot's own centres
     kin = inp.kinematics()
-    ref_q = chain.points_vjp_frames(kin, ref_G)
-    torch.testing.assert_close(chain.vjp_from_moments(kin, H), ref_q, rtol=tol * 10, atol=tol * 10 * ref_q.abs().max())
+    _, flat0, rows0, H = collision_kernel.collision_pass(env, kin.points_t, radius, w, 3.0, reach=None, frames=frames)
+    assert flat0.numel() > 0
+    G0 = torch.zeros(S, 3, N, dtype=dtype)
+    G0[flat0 // N, :, flat0 % N] = rows0
+    ref_q = chain.points_vjp_frames(kin, G0)
+    got_q = chain.vjp_from_forces(kin, H[:, 0], H[:, 1])
+    torch.testing.assert_close(got_q, ref_q, rtol=tol * 10, atol=tol * 10 * ref_q.abs().max())
     # and the whole cost through both paths (the kernel skips the clamping when the reach ball lies in the box)
     terms = {}
     for compiled in (True, False):
@@ -591,9 +595,9 @@ def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
             monkeypatch.setattr(collision_kernel, "MIN_COLUMNS_PER_THREAD", min_cols)
             assert len(collision_kernel.column_ranges(X.shape[2])) == max(1, min(threads, X.shape[2] // min_cols))
             chain = task.robot.chain
-            moments = (*chain.point_moments_weights(X.dtype), chain.dof)
+            frames = (chain.point_joint + 1, chain.dof)
             out[threads] = (
-                *collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=None, moments=moments),
+                *collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=None, frames=frames),
                 *self_collision_kernel.self_pass(X, sargs),
             )
     finally:

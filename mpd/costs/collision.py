@@ -10,6 +10,7 @@ Jacobian product (:func:`mpd.costs.base.spheres_vjp_sparse`).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from mpd.costs import collision_kernel
@@ -46,26 +47,19 @@ class CollisionCost(Cost):
         if self.compiled and inp.sdf_mode == "nearest" and collision_kernel.supported(X):
             # one compiled pass (the torch lines below are its reference)
             chain = self.robot.chain
-            mkey = ("moments", X.dtype)
-            if mkey not in self._consts:
-                mw = chain.point_moments_weights(X.dtype)
-                self._consts[mkey] = None if mw is None else (*mw, chain.dof)
-            # the moments need the frames, except on a translational chain (its product reads only the forces)
-            moments = self._consts[mkey] if kin.frames_t is not None or chain.translational else None
-            # with the moments, the entries are only wanted for the sparse product
-            cap = int(SPARSE_FRACTION * S * N) if moments is not None else None
+            fkey = ("frames",)
+            if fkey not in self._consts:
+                self._consts[fkey] = (np.ascontiguousarray(chain.point_joint + 1), chain.dof)
+            # the frames' sums carry the gradient; the entries are only wanted for the sparse product
+            cap = int(SPARSE_FRACTION * S * N)
             per_config, flat, rows, H = collision_kernel.collision_pass(
-                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, moments, cap
+                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, self._consts[fkey], cap
             )
             value = per_config.view(B, n).sum(-1)
             if flat is not None and flat.numel() <= SPARSE_FRACTION * S * N:
                 g_q = spheres_vjp_sparse(self.robot, kin, flat, rows[:, :D], N)
-            elif H is not None:
-                g_q = chain.vjp_from_moments(kin, H)
             else:
-                G = X.new_zeros(S, 3, N)
-                G[flat // N, :, flat % N] = rows
-                g_q = chain.points_vjp_frames(kin, G)
+                g_q = chain.vjp_from_forces(kin, H[:, 0], H[:, 1])
             return CostTerm(value, g_q=g_q.view(B, n, dof))
         d, g = sdf_batch_last(inp.env, X[:, :D], inp.sdf_mode, self.robot.chain.reach)
         a = self._consts[key]["r"] - d  # (S, N): depth inside the margin-inflated obstacles

@@ -6,9 +6,9 @@ the per-point weights, the (S, 3, N) gradient), ~15 ms for 100 Panda trajectorie
 kernel does them in one compiled pass (numba, ``cache=True``): for each sphere centre it finds the nearest grid node
 of each object set exactly as :func:`mpd.costs.sdf._nearest` does, keeps the closer set (the extra one only when
 strictly closer), and writes the depth inside the margin-inflated obstacles into the trajectory's cost and, where
-positive, ``coef * grad sdf`` into the centre gradient. The Jacobian product's per-frame moments are accumulated
-in the same pass (no (S, 3, N) gradient array); the joint-axis products stay torch's
-(:meth:`mpd.robots.chain.Chain.vjp_from_moments`).
+positive, ``coef * grad sdf`` into the centre gradient. The Jacobian product's per-frame sums (the gradients and
+their moments c x g) are accumulated in the same pass (no (S, 3, N) gradient array); the joint-axis products stay
+torch's (:meth:`mpd.robots.chain.Chain.vjp_from_forces`).
 
 ``tests/test_costs.py`` pins the kernel to the torch path (values, gradients, the active count) on points inside,
 on the boundary of and outside the grid boxes, with and without extra objects.
@@ -62,7 +62,6 @@ def _collision_pass(
     bits_b,
     clamp,
     frame,
-    lw,
     use_h,
     value,
     H,
@@ -83,9 +82,10 @@ def _collision_pass(
     Adds to ``value`` (N,) (sum over spheres of relu(r - d) w); writes the active entries ``flat[:E]`` (s * N + c, in
     order, ``counts[s]`` of them for sphere s) and their centre gradients ``coef w grad sdf`` as ``rows[:E]`` (E, 3),
     as long as E <= ``cap`` (beyond, entries are only counted); returns E. With ``use_h`` it also adds each active
-    gradient to the moments of its sphere's frame, ``H[f - 1, m, :, c] += lw[s, m] g`` (``frame[s]`` = f, 0 = the
-    root, which no joint moves): the Jacobian product then needs no (S, 3, N) gradient array
-    (:meth:`mpd.robots.chain.Chain.vjp_from_moments`). Disjoint column ranges can run at once (threads): they write
+    gradient g and its moment c x g about the origin (c the sphere's centre) to the sums of its sphere's frame,
+    ``H[f - 1, 0, :, c] += g``, ``H[f - 1, 1, :, c] += c x g`` (``frame[s]`` = f, 0 = the root, which no joint
+    moves): the Jacobian product then needs no (S, 3, N) gradient array
+    (:meth:`mpd.robots.chain.Chain.vjp_from_forces`). Disjoint column ranges can run at once (threads): they write
     disjoint entries.
 
     Per sphere in simple loops that the compiler vectorizes: node rows, then a bit per entry from ``bits_a`` /
@@ -157,10 +157,13 @@ def _collision_pass(
                     rows[active, 2] = g2
                     flat[active] = s * N + c
                 if use_h and fs > 0:
-                    for m in range(4):
-                        H[fs - 1, m, 0, c] += lw[s, m] * g0
-                        H[fs - 1, m, 1, c] += lw[s, m] * g1
-                        H[fs - 1, m, 2, c] += lw[s, m] * g2
+                    x0, x1, x2 = X[s, 0, c], X[s, 1, c], X[s, 2, c]
+                    H[fs - 1, 0, 0, c] += g0
+                    H[fs - 1, 0, 1, c] += g1
+                    H[fs - 1, 0, 2, c] += g2
+                    H[fs - 1, 1, 0, c] += x1 * g2 - x2 * g1
+                    H[fs - 1, 1, 1, c] += x2 * g0 - x0 * g2
+                    H[fs - 1, 1, 2, c] += x0 * g1 - x1 * g0
                 active += 1
         counts[s] = active - before
     return active
@@ -289,30 +292,29 @@ def collision_pass(
     w: torch.Tensor,
     weight: float,
     reach: float | None = None,
-    moments: tuple[np.ndarray, np.ndarray, int] | None = None,
+    frames: tuple[np.ndarray, int] | None = None,
     max_entries: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
     """For centres X (S, 3, N): (per-configuration value (N,), active entries (E,) as s * N + c, their centre
-    gradients (E, 3), the frames' moments H (dof, 4, 3, N) or None); see the module docstring. ``X[:, D:]`` is
-    ignored for a D < 3 task (its gradient rows are 0). ``reach``: a bound of |x| (the robot's reach around the
-    origin); when every grid box contains that ball, no point needs clamping. ``moments``: (frame of each sphere,
-    its [l; 1] weights, dof) from :meth:`mpd.robots.chain.Chain.point_moments_weights`, to accumulate H.
+    gradients (E, 3), the frames' sums H (dof, 2, 3, N), [sum g; sum c x g], or None); see the module docstring.
+    The gradient of ``X[:, D:]`` is 0 for a D < 3 task. ``reach``: a bound of |x| (the robot's reach around the
+    origin); when every grid box contains that ball, no point needs clamping. ``frames``: (the frame of each sphere,
+    ``chain.point_joint + 1``, dof), to accumulate H (for :meth:`mpd.robots.chain.Chain.vjp_from_forces`).
     ``max_entries``: when there are more active entries than this, they are not returned (None, None in their
     place; H then carries the gradient): the dense case's (E, 3) rows are neither written nor allocated."""
     S, _, N = X.shape
     D = env.dim
     grids, clamp = lookup_tables(env, X.dtype, reach)
     value = torch.zeros(N, dtype=X.dtype)
-    H = torch.zeros(moments[2], 4, 3, N, dtype=X.dtype) if moments is not None else None
+    H = torch.zeros(frames[1], 2, 3, N, dtype=X.dtype) if frames is not None else None
     if not grids:
         return value, torch.empty(0, dtype=torch.int64), torch.empty(0, 3, dtype=X.dtype), H
     Xn = X.detach().contiguous().numpy()
     dt = Xn.dtype.type
-    if moments is not None:
-        frame, lw = moments[0], moments[1].astype(Xn.dtype, copy=False)
-        Hn = H.numpy()
+    if frames is not None:
+        frame, Hn = frames[0], H.numpy()
     else:
-        frame, lw, Hn = np.zeros(S, np.int64), np.zeros((S, 4), Xn.dtype), np.zeros((1, 4, 3, 1), Xn.dtype)
+        frame, Hn = np.zeros(S, np.int64), np.zeros((1, 2, 3, 1), Xn.dtype)
     rn = r.detach().reshape(-1).contiguous().numpy()
     bits = near_bits(env, grids, X.dtype, reach, rn.max())
     args = (
@@ -327,8 +329,7 @@ def collision_pass(
         bits[-1],
         clamp,
         frame,
-        lw,
-        moments is not None,
+        frames is not None,
         value.numpy(),
         Hn,
     )

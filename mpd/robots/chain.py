@@ -437,8 +437,8 @@ class KinematicChain:
         return self.vjp_from_moments(kin, H)
 
     def point_moments_weights(self, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray] | None:
-        """(frame of each point (P,), its [l; 1] weights (P, 4)) for accumulating the moments H of
-        :meth:`vjp_from_moments` elsewhere (the compiled collision pass); None when the chain has no sorted points."""
+        """(frame of each point (P,), its [l; 1] weights (P, 4)): the point products of the compiled FK, and the
+        weights of the moments H of :meth:`vjp_from_moments`; None when the chain has no sorted points."""
         if self._point_blocks is None:
             return None
         W = self._c(dtype, torch.device("cpu"))["wpoints_t"].numpy()
@@ -449,13 +449,9 @@ class KinematicChain:
     def vjp_from_moments(self, kin: Kinematics, H: torch.Tensor) -> torch.Tensor:
         """J^T g (B, dof) from the per-frame moments H (dof, 4, 3, B), H[f - 1, m, k] = sum over the points s on frame
         f of [l_s; 1][m] g_s[k] (see :meth:`points_vjp_frames`); H is overwritten."""
-        c = self._c(H.dtype, H.device)
         dof, B = self.dof, H.shape[3]
         if self._affine is not None:  # constant axes: only the forces count
-            F = H[:, 3]
-            for j in range(dof - 2, -1, -1):
-                F[j] += F[j + 1]
-            return self._affine_vjp(F)
+            return self.vjp_from_forces(kin, H[:, 3], None)
         T = kin.frames_t[1:]  # T[f, m, i] = [R_f | p_f][i, m]
         # M_f = sum_m T[:, m] x H[:, m], accumulated in place (fused multiply-adds on (dof, B) rows, no temporaries)
         M = H.new_empty(dof, 3, B)
@@ -464,10 +460,20 @@ class KinematicChain:
             Mk.addcmul_(T[:, 0, k2], H[:, 0, k1], value=-1)
             for m in (1, 2, 3):
                 Mk.addcmul_(T[:, m, k1], H[:, m, k2]).addcmul_(T[:, m, k2], H[:, m, k1], value=-1)
-        F = H[:, 3]
-        for j in range(dof - 2, -1, -1):  # joint j moves the frames j+1..dof
+        return self.vjp_from_forces(kin, H[:, 3], M)
+
+    def vjp_from_forces(self, kin: Kinematics, F: torch.Tensor, M: torch.Tensor | None) -> torch.Tensor:
+        """J^T g (B, dof) from the sums over the points s on each frame f (dof, 3, B; overwritten): F_f = sum g_s and
+        M_f = sum c_s x g_s (world-frame centres c_s; M may be None on a translational chain, which reads only F).
+        With the sums over the frames j+1..dof that joint j moves, (J^T g)_j = z_j . (M_j - o_j x F_j) for a revolute
+        joint and z_j . F_j for a prismatic one (the compiled collision pass accumulates F and M directly)."""
+        c = self._c(F.dtype, F.device)
+        for j in range(self.dof - 2, -1, -1):  # joint j moves the frames j+1..dof
             F[j] += F[j + 1]
-            M[j] += M[j + 1]
+            if self._affine is None:
+                M[j] += M[j + 1]
+        if self._affine is not None:
+            return self._affine_vjp(F)
         o, z = kin.origins_t, kin.axes_t
         if self.revolute.all():
             for k, (k1, k2) in enumerate(_NEXT):  # M - o x F, in place
