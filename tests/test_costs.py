@@ -352,7 +352,7 @@ def test_compiled_self_collision_is_the_torch_path(dtype, preset):
         )
         # random configurations: 1-2 % in self collision
         kin = r.kinematics(r.random_q(20000, torch.Generator().manual_seed(12), dtype=dtype))
-        pen, config, i, j = self_collision_kernel.self_pass(kin.points_t, args)
+        pen, config, i, j, _ = self_collision_kernel.self_pass(kin.points_t, args)
         pen_all = (cost.margin - r.self_collision_distance(kin.points)).max(-1)
         hit = pen_all.values > 0
         assert hit.sum() > 100, "the configurations test nothing"
@@ -580,7 +580,8 @@ def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
 
     task, param, env, free, q_start, q_goal, ee_goal = case(key, "bspline")
     dense = param.dense(free.float(), q_start.float(), None if q_goal is None else q_goal.float())
-    X = CostInput(dense, task, env, ee_goal, "nearest").kinematics().points_t
+    kin = CostInput(dense, task, env, ee_goal, "nearest").kinematics()
+    X = kin.points_t
     radius = (task.robot.sphere_radii + 0.05).to(X)[:, None]
     w = torch.rand(dense.q.shape[1], generator=torch.Generator().manual_seed(1))
     cost = SelfCollisionCost(task, "official")
@@ -598,11 +599,11 @@ def test_compiled_passes_do_not_depend_on_the_thread_split(key, monkeypatch):
             frames = (chain.point_joint + 1, chain.dof)
             out[threads] = (
                 *collision_kernel.collision_pass(env, X, radius, w, 2.0, reach=None, frames=frames),
-                *self_collision_kernel.self_pass(X, sargs),
+                *self_collision_kernel.self_pass(X, sargs, (kin, w, chain)),
             )
     finally:
         torch.set_num_threads(n_threads)
-    assert out[1][1].numel() > 0 and out[1][5].numel() > 0
+    assert out[1][1].numel() > 0 and out[1][5].numel() > 0 and out[1][8].abs().sum() > 0
     for threads in (3, 4):
         for a, b in zip(out[1], out[threads]):
             assert torch.equal(a, b)

@@ -182,8 +182,12 @@ class SelfCollisionCost(Cost):
                 self._consts[key] = self_collision_kernel.kernel_args(
                     self._levels, self.blocks, self._used, r.sphere_radii.numpy(), self.margin, X.dtype
                 )
-            per_point, config, i, j = self_collision_kernel.self_pass(X, self._consts[key])
-            if config.numel():
+            # the kernel maps the deepest pairs' gradients to the joints too, given the joints' origins and axes
+            grad = (kin, weight * w, self.robot.chain) if kin.origins_t is not None and kin.axes_t is not None else None
+            per_point, config, i, j, g_k = self_collision_kernel.self_pass(X, self._consts[key], grad)
+            if g_k is not None:
+                g_q = g_k
+            elif config.numel():
                 g_q = self._gradient(kin, X[i, :, config] - X[j, :, config], config, i, j, weight * w, n)
         else:
             per_point = X.new_zeros(N)
