@@ -417,6 +417,62 @@ def test_ee_forms_agree_for_small_motions_near_origin():
         torch.testing.assert_close(paper, official, rtol=rtol, atol=0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("preset", ["official", "paper"])
+def test_compiled_ee_cost_is_the_torch_path(dtype, preset):
+    """The compiled end-effector pass (``mpd.costs.ee_kernel``) against the torch path (``ee_pose_error``,
+    ``Robot.ee_vjp``): values and gradients for goals at the final pose, rotated from it by angles below and above
+    the series' switch, near pi (the axis from the symmetric part) and anywhere, with the final configurations' frames
+    taken from the FK of all configurations and from an FK of their own."""
+    from mpd.costs.ee_pose import EEPoseCost
+
+    task = load_task("EnvSpheres3D-RobotPanda")
+    r, param = task.robot, make_parametrization(task, "bspline")
+    g = torch.Generator().manual_seed(21)
+    B = 48
+    free = r.random_q(B * param.n_free, g, F64).reshape(B, param.n_free, task.dof)
+    q_start = r.random_q(B, g, F64)
+    dense = param.dense(free.to(dtype), q_start.to(dtype))
+    p_ee, R_ee = r.ee_pose(dense.q[:, -1].double())
+    # rotations of the goal about random axes: 0, tiny, below and above the float32 switch (0.5), up to 3e-6 from pi
+    # (at pi itself the axis's sign is a choice that rounding makes: the two paths may choose differently)
+    axis = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=F64), dim=-1)
+    ang = torch.tensor([0.0, 1e-6, 0.02, 0.3, 0.49, 0.51, 1.5, 2.7, 2.9, 3.1, 3.13, 3.14159], dtype=F64)
+    ang = ang.repeat(B // len(ang))
+    R_goal = torch.linalg.matrix_exp(_hat(axis * ang[:, None])) @ R_ee
+    p_goal = p_ee + 0.3 * torch.randn(B, 3, generator=g, dtype=F64) * (ang[:, None] > 0.1)
+    p_goal[-6:], R_goal[-6:] = r.ee_pose(r.random_q(6, g, F64))  # anywhere
+    assert (torch.diagonal(R_goal.transpose(1, 2) @ R_ee, dim1=1, dim2=2).sum(-1) < -0.8).sum() >= 8  # near pi
+    goal = (p_goal.to(dtype), R_goal.to(dtype))
+    # the pass's own logarithm and V^-1 coefficients (float64 arithmetic, the dtype's switch to the series) against
+    # se3's in float64, one angle at a time: they differ by the series' truncation (~1e-6 relative at 0.5), while
+    # the cost's tolerance below is the float32 path's rounding (whose closed forms cancel: 3e-4 at 0.5)
+    from mpd.costs import ee_kernel, se3
+
+    small = se3._small(dtype)
+    rot = torch.linalg.matrix_exp(_hat(axis * ang[:, None]))
+    for k in range(len(ang)):
+        c, dc = ee_kernel._vinv_coeffs(float(ang[k]), small)
+        c_ref, dc_ref = se3._vinv_coeffs(ang[k : k + 1])
+        torch.testing.assert_close(torch.tensor([c, dc], dtype=F64), torch.cat([c_ref, dc_ref]), rtol=5e-6, atol=0)
+        phi, _ = ee_kernel._so3_log(rot[k].numpy(), small)
+        torch.testing.assert_close(torch.from_numpy(phi), se3.so3_log(rot[k])[0], rtol=2e-6, atol=1e-9)
+    tol = dict(rtol=2e-4, atol=2e-4) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-10)
+    for with_fk in (True, False):
+        out = {}
+        for compiled in (True, False):
+            cost = EEPoseCost(task, preset)
+            cost.compiled = compiled
+            inp = CostInput(dense, task, task.env(), goal, "nearest")
+            if with_fk:
+                inp.kinematics()
+            out[compiled] = cost(inp, 1.7)
+        assert out[False].value.max() > 1
+        torch.testing.assert_close(out[True].value, out[False].value, **tol)
+        torch.testing.assert_close(out[True].g_q, out[False].g_q, **tol)
+        assert out[True].g_q[:, :-1].abs().max() == 0 and (out[True].g_q[:, -1] != 0).any(-1).sum() >= B - 4
+
+
 def test_se3_log_and_gradient():
     """The log inverts exp at all angles (0, tiny, pi); the gradient of 1/2|log|^2 is exact, and the authors'
     -J^T xi (i.e. xi itself as the gradient) is only its first-order approximation."""

@@ -99,6 +99,15 @@ class CostInput:
                 self._last_kin = self.robot.kinematics(self.dense.q[:, -1].contiguous(), spheres=False, ee=True)
         return self._last_kin
 
+    def final_columns(self) -> tuple[Kinematics, torch.Tensor]:
+        """A kinematics that holds the final configurations q(1) and their columns (B,) in it: the FK of all
+        configurations when that has run (columns n - 1, 2n - 1, ...), else :meth:`last_kinematics` (0 .. B - 1)."""
+        B, n, _ = self.shape
+        dev = self.dense.q.device
+        if self._kin is not None:
+            return self._kin, torch.arange(n - 1, B * n, n, device=dev)
+        return self.last_kinematics(), torch.arange(B, device=dev)
+
 
 @dataclass
 class CostTerm:

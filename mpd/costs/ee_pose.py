@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import torch
 
+from mpd.costs import ee_kernel
 from mpd.costs.base import Cost, CostInput, CostTerm, register
 from mpd.costs.se3 import cross, se3_half_sq_log_grad, se3_log, so3_log
 from mpd.tasks import Task
@@ -44,6 +45,8 @@ def ee_pose_error(
 @register
 class EEPoseCost(Cost):
     name = "ee_pose"
+    # the compiled CPU pass (False: the torch path, its reference, everywhere)
+    compiled: bool = True
 
     @classmethod
     def applicable(cls, task: Task) -> bool:
@@ -52,6 +55,15 @@ class EEPoseCost(Cost):
     def __call__(self, inp: CostInput, weight: float = 1.0) -> CostTerm:
         if inp.ee_goal is None:
             raise ValueError("the end-effector pose cost needs ee_goal=(position (B, 3), rotation (B, 3, 3))")
+        q = inp.dense.q
+        if self.compiled and ee_kernel.supported(q):
+            kin, cols = inp.final_columns()
+            if kin.frames_t is not None:  # one compiled pass (the torch lines below are its reference)
+                goal_pos, goal_rot = (x.to(q.dtype) for x in inp.ee_goal)
+                value, g_last = ee_kernel.ee_pass(self.robot.chain, kin, cols, goal_pos, goal_rot, self.preset, weight)
+                g_q = torch.zeros_like(q)
+                g_q[:, -1] = g_last
+                return CostTerm(value, g_q=g_q)
         kin = inp.last_kinematics()
         goal_pos, goal_rot = (x.to(kin.ee_pos) for x in inp.ee_goal)
         value, g_pos, g_rot = ee_pose_error(self.preset, kin.ee_pos, kin.ee_rot, goal_pos, goal_rot)
