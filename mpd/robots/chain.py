@@ -20,6 +20,7 @@ sum) is that of the batch-first formulation, and the numbers are bit-identical t
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -204,10 +205,11 @@ class KinematicChain:
             self._affine = (b, A, k.axes_t[:, :, 0].numpy().copy(), k.ee_rot[0].numpy().copy())
             self._cache.clear()  # the constants made by that pass lack the affine ones
 
-    @property
+    @functools.cached_property
     def reach(self) -> float | None:
         """An upper bound of |c| over all configurations and attached points c (root frame), or None when a
-        prismatic joint makes it unbounded: each joint offset and point offset adds at most its length."""
+        prismatic joint makes it unbounded: each joint offset and point offset adds at most its length (computed
+        once: the collision cost asks for it on every call)."""
         if not self.revolute.all():
             return None
         offsets = np.concatenate([[0.0], np.cumsum(np.linalg.norm(self._off_p, axis=1))])
