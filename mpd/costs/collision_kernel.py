@@ -8,9 +8,9 @@ of each object set exactly as :func:`mpd.costs.sdf._nearest` does, keeps the clo
 strictly closer), and writes the depth inside the margin-inflated obstacles into the trajectory's cost and, where
 positive, ``coef * grad sdf`` into the centre gradient. It reads the grid's rows from a near table
 (:func:`near_tables`): a bit per node and the rows of the nodes near an object only (4 % of EnvSpheres3D's nodes),
-which stay in the second-level cache where the whole table (12 MB) did not. The Jacobian product's per-frame sums (the gradients and
-their moments c x g) are accumulated in the same pass (no (S, 3, N) gradient array); the joint-axis products stay
-torch's (:meth:`mpd.robots.chain.Chain.vjp_from_forces`).
+which stay in the second-level cache where the whole table (12 MB) did not. The Jacobian product's per-frame sums
+(the gradients and their moments c x g) are accumulated in the same pass (no (S, 3, N) gradient array); the
+joint-axis products stay torch's (:meth:`mpd.robots.chain.Chain.vjp_from_forces`).
 
 ``tests/test_costs.py`` pins the kernel to the torch path (values, gradients, the active count) on points inside,
 on the boundary of and outside the grid boxes, with and without extra objects.
