@@ -1100,6 +1100,9 @@ def test_compiled_inference_matches_eager_follows_new_weights_and_compiles_once_
     with torch.no_grad():
         for t in (99, 37, torch.tensor(5), 0):
             torch.testing.assert_close(model(x, t, ctx, compiled=True), model(x, t, ctx), rtol=1e-5, atol=1e-5)
+        # the context's embedding given in place of its fields (what a planner does): the same graph, the same output
+        emb = model.embed_context(ctx)
+        assert torch.equal(model(x, 37, emb, compiled=True), model(x, 37, ctx, compiled=True))
         assert counters["stats"]["unique_graphs"] == 1
         before = model(x, 10, ctx, compiled=True)
         for p in model.unet.parameters():
@@ -1113,6 +1116,30 @@ def test_compiled_inference_matches_eager_follows_new_weights_and_compiles_once_
     assert "_compiled" not in copy.deepcopy(model).unet.__dict__
     with pytest.raises(RuntimeError, match="no_grad"):
         model(x, 10, ctx, compiled=True)
+
+
+@pytest.mark.parametrize("autocast", [False, True])
+def test_context_embedding_in_place_of_the_fields_is_the_same_network(autocast):
+    """``DiffusionModel.forward`` given the context's embedding (``embed_context``, computed once per denoising
+    process by the planners) returns exactly what it returns for the fields, with and without a goal head, in fp32
+    and under bf16 autocast; the embedding is not the fields' values (the test would pass on an identity)."""
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(2)
+    for kind, head, dof in (("goal_joint_position", 0, 2), ("goal_ee_pose", 8, 7)):
+        spec = ModelSpec(unet_dim=8, unet_dim_mults=[1, 2], context_dim=16, context_layers=1, time_emb_dim=8)
+        spec = dataclasses.replace(spec, goal_head_width=head)
+        model = DiffusionModel(dof, 16, kind, spec).eval()
+        x = torch.randn(5, 16, dof, generator=g)
+        if kind == "goal_joint_position":
+            ctx = {"q_start": torch.rand(1, dof, generator=g), "q_goal": torch.rand(1, dof, generator=g)}
+        else:
+            rot = torch.linalg.qr(torch.randn(1, 3, 3, generator=g)).Q
+            ctx = {"q_start": torch.rand(1, dof, generator=g), "ee_pos": torch.rand(1, 3, generator=g), "ee_rot": rot}
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast):
+            emb = model.embed_context(ctx)
+            assert emb.shape == (1, 16) and emb.dtype == (torch.bfloat16 if autocast else torch.float32)
+            for t in (90, 3):
+                assert torch.equal(model(x, t, emb), model(x, t, ctx))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

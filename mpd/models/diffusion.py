@@ -350,12 +350,22 @@ class DiffusionModel(nn.Module):
     def n_diffusion_steps(self) -> int:
         return self.schedule.n_steps
 
+    def embed_context(self, context: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The context's embedding (rows, context_dim), which :meth:`forward` also takes in place of the fields: the
+        steps of one denoising process share it (a planner computes it once, not at every step)."""
+        return self.context_encoder(context)
+
     def forward(
-        self, x_t: torch.Tensor, t: int | torch.Tensor, context: Mapping[str, torch.Tensor], compiled: bool = False
+        self,
+        x_t: torch.Tensor,
+        t: int | torch.Tensor,
+        context: Mapping[str, torch.Tensor] | torch.Tensor,
+        compiled: bool = False,
     ) -> torch.Tensor:
-        """Predicted noise. Context fields have batch 1 (shared by every sample) or the batch of ``x_t``.
-        ``compiled``: the U-Net through :meth:`TemporalUnet.compiled` (inference only, under ``torch.no_grad()``)."""
-        emb = self.context_encoder(context)
+        """Predicted noise. Context fields have batch 1 (shared by every sample) or the batch of ``x_t``; a tensor is
+        their embedding (:meth:`embed_context`). ``compiled``: the U-Net through :meth:`TemporalUnet.compiled`
+        (inference only, under ``torch.no_grad()``)."""
+        emb = context if isinstance(context, torch.Tensor) else self.context_encoder(context)
         if compiled:
             if torch.is_grad_enabled():
                 raise RuntimeError("the compiled network is for inference: call it under torch.no_grad()")

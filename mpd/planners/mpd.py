@@ -48,6 +48,9 @@ class MPD(Planner):
         grad_fn = self.cost_grad_fn(ctx, timer) if self.guided else None
         # the model's compiled U-Net (DiffusionModel.forward) when asked for; otherwise the network is called plainly
         eps_net = functools.partial(net, compiled=True) if s.network_compile else net
+        if hasattr(net, "embed_context"):  # a DiffusionModel: every step's context embedding, computed once
+            with timer("network"), autocast():
+                cond = net.embed_context(cond)
         x = randn(shape, gen, dev)
         if hist is not None:
             hist.append(HistoryStep("noise", 0, self.normalizer.unnormalize(x)))
