@@ -50,6 +50,12 @@ class CollisionCost(Cost):
             fkey = ("frames",)
             if fkey not in self._consts:
                 self._consts[fkey] = (np.ascontiguousarray(chain.point_joint + 1), chain.dof)
+            jac = chain.points_jacobian()
+            if jac is not None:  # constant Jacobians (the point mass): the pass writes the joints' gradient
+                per_config, _, _, g_q = collision_kernel.collision_pass(
+                    inp.env, X, self._consts[key]["r"], w, weight, chain.reach, max_entries=0, jacobian=jac
+                )
+                return CostTerm(per_config.view(B, n).sum(-1), g_q=g_q.view(B, n, dof))
             # the frames' sums carry the gradient; the entries are only wanted for the sparse product
             cap = int(SPARSE_FRACTION * S * N)
             per_config, flat, rows, H = collision_kernel.collision_pass(

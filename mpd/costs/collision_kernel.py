@@ -96,6 +96,8 @@ def _collision_pass(
     use_h,
     value,
     H,
+    jac,
+    Gq,
     rows,
     flat,
     counts,
@@ -114,12 +116,13 @@ def _collision_pass(
     margin; ``w`` (N,): quadrature weight of each configuration's trajectory point; ``coef``: -weight. Adds to
     ``value`` (N,) (sum over spheres of relu(r - d) w); writes the active entries ``flat[:E]`` (s * N + c, in order,
     ``counts[s]`` of them for sphere s) and their centre gradients ``coef w grad sdf`` as ``rows[:E]`` (E, 3), as long
-    as E <= ``cap`` (beyond, entries are only counted); returns E. With ``use_h`` it also adds each active gradient g
-    and its moment c x g about the origin (c the sphere's centre) to the sums of its sphere's frame,
+    as E <= ``cap`` (beyond, entries are only counted); returns E. With ``use_h`` = 1 it also adds each active
+    gradient g and its moment c x g about the origin (c the sphere's centre) to the sums of its sphere's frame,
     ``H[f - 1, 0, :, c] += g``, ``H[f - 1, 1, :, c] += c x g`` (``frame[s]`` = f, 0 = the root, which no joint
     moves): the Jacobian product then needs no (S, 3, N) gradient array
-    (:meth:`mpd.robots.chain.Chain.vjp_from_forces`). Disjoint column ranges can run at once (threads): they write
-    disjoint entries.
+    (:meth:`mpd.robots.chain.Chain.vjp_from_forces`); with ``use_h`` = 2 (a chain without revolute joints, whose
+    points' Jacobians ``jac`` (S, 3, dof) are constants) it adds J_s^T g to the joints' gradient ``Gq[c]`` (N, dof)
+    instead. Disjoint column ranges can run at once (threads): they write disjoint entries.
 
     Per sphere in simple loops: node rows (vectorized), then a bit per entry (a table that stays in the second-level
     cache) rules out every entry whose node is not near an object (its distance is then at least the largest
@@ -207,7 +210,10 @@ def _collision_pass(
                     rows[active, 1] = g1
                     rows[active, 2] = g2
                     flat[active] = s * N + c
-                if use_h and fs > 0:
+                if use_h == 2:  # constant point Jacobians: straight to the joints
+                    for j in range(jac.shape[2]):
+                        Gq[c, j] += jac[s, 0, j] * g0 + jac[s, 1, j] * g1 + jac[s, 2, j] * g2
+                elif use_h == 1 and fs > 0:
                     x0, x1, x2 = X[s, 0, c], X[s, 1, c], X[s, 2, c]
                     H[fs - 1, 0, 0, c] += g0
                     H[fs - 1, 0, 1, c] += g1
@@ -352,6 +358,7 @@ def collision_pass(
     reach: float | None = None,
     frames: tuple[np.ndarray, int] | None = None,
     max_entries: int | None = None,
+    jacobian: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
     """For centres X (S, 3, N): (per-configuration value (N,), active entries (E,) as s * N + c, their centre
     gradients (E, 3), the frames' sums H (dof, 2, 3, N), [sum g; sum c x g], or None); see the module docstring.
@@ -359,20 +366,29 @@ def collision_pass(
     origin); when every grid box contains that ball, no point needs clamping. ``frames``: (the frame of each sphere,
     ``chain.point_joint + 1``, dof), to accumulate H (for :meth:`mpd.robots.chain.Chain.vjp_from_forces`).
     ``max_entries``: when there are more active entries than this, they are not returned (None, None in their
-    place; H then carries the gradient): the dense case's (E, 3) rows are neither written nor allocated."""
+    place; H then carries the gradient): the dense case's (E, 3) rows are neither written nor allocated.
+    ``jacobian``: the spheres' constant Jacobians (S, 3, dof) of a chain without revolute joints; the gradient
+    w.r.t. each configuration's joints (N, dof) is then accumulated in the pass and returned in H's place."""
     S, _, N = X.shape
     D = env.dim
     grids, clamp = lookup_tables(env, X.dtype, reach)
     value = torch.zeros(N, dtype=X.dtype)
-    H = torch.zeros(frames[1], 2, 3, N, dtype=X.dtype) if frames is not None else None
+    if jacobian is not None:
+        H = torch.zeros(N, jacobian.shape[2], dtype=X.dtype)
+    elif frames is not None:
+        H = torch.zeros(frames[1], 2, 3, N, dtype=X.dtype)
+    else:
+        H = None
     if not grids:
         return value, torch.empty(0, dtype=torch.int64), torch.empty(0, 3, dtype=X.dtype), H
     Xn = X.detach().contiguous().numpy()
     dt = Xn.dtype.type
-    if frames is not None:
-        frame, Hn = frames[0], H.numpy()
-    else:
-        frame, Hn = np.zeros(S, np.int64), np.zeros((1, 2, 3, 1), Xn.dtype)
+    frame, Hn = np.zeros(S, np.int64), np.zeros((1, 2, 3, 1), Xn.dtype)
+    jac, Gq, mode = np.zeros((1, 3, 1), Xn.dtype), np.zeros((1, 1), Xn.dtype), 0
+    if jacobian is not None:
+        jac, Gq, mode = np.ascontiguousarray(jacobian, dtype=Xn.dtype), H.numpy(), 2
+    elif frames is not None:
+        frame, Hn, mode = frames[0], H.numpy(), 1
     rn = r.detach().reshape(-1).contiguous().numpy()
     near = near_tables(env, grids, X.dtype, reach, rn.max())
     args = (
@@ -387,9 +403,11 @@ def collision_pass(
         near[-1],
         clamp,
         frame,
-        frames is not None,
+        mode,
         value.numpy(),
         Hn,
+        jac,
+        Gq,
     )
     ranges = column_ranges(N)
     # each range's buffers hold up to max_entries (all of a range's entries could be the ones returned)

@@ -292,6 +292,14 @@ class KinematicChain:
         its Jacobian products need only the forces (row 3 of :meth:`vjp_from_moments`' moments)."""
         return self._affine is not None
 
+    def points_jacobian(self) -> np.ndarray | None:
+        """The attached points' Jacobians (P, 3, dof), constant for a chain without revolute joints (the A of its
+        affine FK); None for any other chain."""
+        if self._affine is None:
+            return None
+        A = self._affine[1]  # rows [origins (3 dof); ee position (3); points (3 P)] x dof
+        return np.ascontiguousarray(A[3 * self.dof + 3 :].reshape(-1, 3, self.dof))
+
     def _affine_vjp(self, F: torch.Tensor) -> torch.Tensor:
         """(B, dof) J^T g of a chain without revolute joints from F (dof, 3, B), F_j = the sum of the gradients on
         the points that joint j moves: (J^T g)_j = z_j . F_j."""
