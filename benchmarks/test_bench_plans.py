@@ -10,7 +10,8 @@ Each plan also runs with ``planner.network_precision = "bf16"`` where the CPU co
 everywhere: the fp32 path is always benchmarked), and with ``planner.network_compile`` (the U-Net compiled by
 torch.compile with frozen weights; its compilation falls in the warm-up round). Medians of 7 rounds after one
 warm-up; the planner's own breakdown (network, cost gradient, each cost) of the median round is stored in
-``extra_info``.
+``extra_info``, with the network's GFLOP per pass (torch's FLOP counter), its achieved GFLOP/s in the plan and the
+fraction of this CPU's nominal peak for the plan's precision (``cpu_peak.py``).
 
 Run: ``pytest benchmarks/test_bench_plans.py -m benchmark --benchmark-only --benchmark-enable`` (``nox -s
 benchmarks``), alone on the machine: another process on the same cores makes every figure meaningless.
@@ -23,6 +24,7 @@ import statistics
 
 import pytest
 import torch
+from cpu_peak import peak_gflops
 from gpu_check import plan_context, random_model  # benchmarks/: the random-weight model and context of the GPU check
 
 from mpd.device import native_bf16
@@ -89,3 +91,30 @@ def test_plan(benchmark, which, method, precision, network):
     benchmark.extra_info.update({k: round(float(v), 4) for k, v in t.items()})
     benchmark.extra_info["median_total_s"] = round(statistics.median(walls), 4)
     benchmark.extra_info["free_control_points"] = make_parametrization(task).n_free
+    # the physical limit (issue 15, item 6): the network's FLOP rate in the plan against this CPU's nominal peaks
+    gflop = network_gflop(planner, ctx)
+    peak = peak_gflops(THREADS)
+    rate = planner.settings.ddim_steps * gflop / t["network"]  # one pass per DDIM step
+    benchmark.extra_info.update(
+        network_gflop_per_pass=round(gflop, 4),
+        network_gflop_per_s=round(rate, 1),
+        peak_fp32_gflop_per_s=round(peak["fp32"], 1),
+        peak_bf16_gflop_per_s=round(peak["bf16"], 1),
+        fraction_of_peak=round(rate / peak[precision], 3),
+    )
+
+
+def network_gflop(planner, ctx) -> float:
+    """GFLOP of one denoising pass of the planner's network (batch 100, the context embedded once, as planned),
+    counted by torch's FLOP counter on the eager network (its convolutions and products)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from mpd.planners.base import model_context
+
+    net = planner.model.network
+    x = torch.zeros(100, make_parametrization(planner.task).n_free, planner.task.dof)
+    with torch.no_grad():
+        emb = net.embed_context(planner.model.normalize_context(model_context(ctx)))
+        with FlopCounterMode(display=False) as fc:
+            net(x, 10, emb)
+    return fc.get_total_flops() / 1e9
