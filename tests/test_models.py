@@ -1112,8 +1112,15 @@ def test_compiled_inference_matches_eager_follows_new_weights_and_compiles_once_
         assert not torch.allclose(before, after)
         model.load_state_dict(DiffusionModel(2, 16, "goal_joint_position", spec).state_dict())
         torch.testing.assert_close(model(x, 10, ctx, compiled=True), model(x, 10, ctx), rtol=1e-5, atol=1e-5)
-    assert "_compiled" in model.unet.__dict__
-    assert "_compiled" not in copy.deepcopy(model).unet.__dict__
+        # a parameter replaced by another object (not updated in place)
+        before = model(x, 10, ctx, compiled=True)
+        conv1 = next(m for m in model.unet.modules() if isinstance(m, torch.nn.Conv1d))
+        conv1.weight = torch.nn.Parameter(conv1.weight.detach() * 1.5)
+        after = model(x, 10, ctx, compiled=True)
+        torch.testing.assert_close(after, model(x, 10, ctx), rtol=1e-5, atol=1e-5)
+        assert not torch.allclose(before, after)
+    assert "_compiled" in model.unet.__dict__ and "_param_refs" in model.unet.__dict__
+    assert not {"_compiled", "_param_refs"} & set(copy.deepcopy(model).unet.__dict__)
     with pytest.raises(RuntimeError, match="no_grad"):
         model(x, 10, ctx, compiled=True)
 
