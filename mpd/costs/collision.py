@@ -47,10 +47,14 @@ class CollisionCost(Cost):
         if self.compiled and inp.sdf_mode == "nearest" and collision_kernel.supported(X):
             # one compiled pass (the torch lines below are its reference)
             chain = self.robot.chain
-            fkey = ("frames",)
-            if fkey not in self._consts:
-                self._consts[fkey] = (np.ascontiguousarray(chain.point_joint + 1), chain.dof)
-            jac = chain.points_jacobian()
+            fkey = ("frames", X.dtype)
+            if fkey not in self._consts:  # the frame of each sphere; the constant Jacobians of a translational chain
+                jac = chain.points_jacobian()
+                self._consts[fkey] = (
+                    (np.ascontiguousarray(chain.point_joint + 1), chain.dof),
+                    (None if jac is None else jac.astype(X.numpy().dtype)),
+                )
+            frames, jac = self._consts[fkey]
             if jac is not None:  # constant Jacobians (the point mass): the pass writes the joints' gradient
                 per_config, _, _, g_q = collision_kernel.collision_pass(
                     inp.env, X, self._consts[key]["r"], w, weight, chain.reach, max_entries=0, jacobian=jac
@@ -59,7 +63,7 @@ class CollisionCost(Cost):
             # the frames' sums carry the gradient; the entries are only wanted for the sparse product
             cap = int(SPARSE_FRACTION * S * N)
             per_config, flat, rows, H = collision_kernel.collision_pass(
-                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, self._consts[fkey], cap
+                inp.env, X, self._consts[key]["r"], w, weight, chain.reach, frames, cap
             )
             value = per_config.view(B, n).sum(-1)
             if flat is not None and flat.numel() <= SPARSE_FRACTION * S * N:

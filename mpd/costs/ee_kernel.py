@@ -175,7 +175,7 @@ def ee_pass(
     B = cols.shape[0]
     value = np.empty(B, np.float64)
     g_last = np.zeros((B, chain.dof), np.float64)
-    fix = chain._ee_fix  # (4, 4) float64: the end effector in its joint's frame
+    fix = chain.ee_fixed  # (4, 4) float64: the end effector in its joint's frame
     _ee_pass(
         F.numpy(),
         kin.origins_t.numpy(),

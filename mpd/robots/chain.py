@@ -292,6 +292,13 @@ class KinematicChain:
         its Jacobian products need only the forces (row 3 of :meth:`vjp_from_moments`' moments)."""
         return self._affine is not None
 
+    @property
+    def ee_fixed(self) -> np.ndarray:
+        """The end effector's pose (4, 4) in the frame of the last joint that moves it (float64, read-only)."""
+        out = self._ee_fix.view()
+        out.flags.writeable = False
+        return out
+
     def points_jacobian(self) -> np.ndarray | None:
         """The attached points' Jacobians (P, 3, dof), constant for a chain without revolute joints (the A of its
         affine FK); None for any other chain."""
