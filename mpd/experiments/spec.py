@@ -22,6 +22,16 @@ runs every remaining *cell* on the same evaluation contexts. Example::
     [tasks."EnvSimple2D-RobotPointMass2D"]
     dataset = "EnvSimple2D-RobotPointMass2D-small"
     profile = "cpu"
+
+A spec that differs from another in a few fields extends it and gives only those (tables merge key by key, lists and
+values replace)::
+
+    extends = "batch-sizes-cpu"
+    name = "batch-sizes-gpu-priors"
+    description = "..."
+
+    [tasks."EnvSpheres3D-RobotPanda-cpu"]
+    profile = "gpu"
 """
 
 from __future__ import annotations
@@ -407,15 +417,65 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
     return out, files
 
 
-def load_spec(name_or_path: str | Path) -> Spec:
-    """Load and validate a spec by name (``benchmarks/specs/NAME.toml``) or path; errors name file and key."""
+def _spec_path(name_or_path: str | Path, near: Path | None = None) -> Path | None:
+    """A spec given by name (``benchmarks/specs/NAME.toml``) or path (relative: next to ``near`` first); None if
+    there is no such file."""
     p = Path(name_or_path)
-    if p.suffix != ".toml" and not p.exists():
-        p = SPEC_DIR / f"{name_or_path}.toml"
-        if not p.exists():
-            known = ", ".join(sorted(x.stem for x in SPEC_DIR.glob("*.toml")))
-            raise ConfigError(name_or_path, "", f"unknown spec (known: {known}; or give a path to a .toml file)")
-    raw = read_toml(p)
+    if near is not None and not p.is_absolute() and (near.parent / p).is_file():
+        return near.parent / p
+    if p.suffix == ".toml" or p.exists():
+        return p if p.is_file() else None
+    p = SPEC_DIR / f"{name_or_path}.toml"
+    return p if p.is_file() else None
+
+
+def _known_specs() -> str:
+    return ", ".join(sorted(x.stem for x in SPEC_DIR.glob("*.toml")))
+
+
+def _merge(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s values: tables merge key by key, anything else (lists included) is replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def resolve_extends(path: Path, _chain: tuple[Path, ...] = ()) -> dict:
+    """The content of the spec file at ``path`` with its ``extends`` resolved: the parent spec (a name in
+    ``benchmarks/specs/`` or a path, relative to this file) resolved the same way, then this file's fields over it
+    (tables merged key by key, values and lists replaced). A spec that extends another names itself (``name``). The
+    result holds no ``extends``: it is what the spec's hash and a run's manifest record, so a spec written as
+    ``extends`` plus its differences has the identity of the full copy it replaces."""
+    raw = read_toml(path)
+    if "extends" not in raw:
+        return raw
+    parent = raw.pop("extends")
+    if not isinstance(parent, str):
+        raise ConfigError(path, "extends", f"{parent!r} is not a spec name or a path to a spec file")
+    if "name" not in raw:
+        raise ConfigError(path, "name", f"a spec that extends {parent!r} needs its own name")
+    parent_path = _spec_path(parent, near=path)
+    if parent_path is None:
+        raise ConfigError(
+            path, "extends", f"unknown spec {parent!r} (known: {_known_specs()}; or a path to a .toml file)"
+        )
+    chain = (*_chain, Path(path).resolve())
+    if parent_path.resolve() in chain:
+        cycle = " -> ".join(p.stem for p in (*chain, parent_path.resolve()))
+        raise ConfigError(path, "extends", f"specs extend each other in a cycle: {cycle}")
+    return _merge(resolve_extends(parent_path, chain), raw)
+
+
+def load_spec(name_or_path: str | Path) -> Spec:
+    """Load and validate a spec by name (``benchmarks/specs/NAME.toml``) or path; errors name file and key. A spec
+    may extend another (``extends = "NAME"`` plus the fields that differ; :func:`resolve_extends`)."""
+    p = _spec_path(name_or_path)
+    if p is None:
+        if Path(name_or_path).suffix == ".toml":
+            raise ConfigError(name_or_path, "", "file not found")
+        raise ConfigError(name_or_path, "", f"unknown spec (known: {_known_specs()}; or give a path to a .toml file)")
+    raw = resolve_extends(p)
     data = from_dict(SpecFile, raw, source=p)
     _validate(data, p)
     data, task_files = _resolve_tasks(data, p)
