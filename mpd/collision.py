@@ -42,6 +42,8 @@ class CollisionChecker:
     Args:
         sdf_mode: ``analytic`` (exact, the default for evaluation) or ``nearest``/``trilinear`` (the grid SDF).
         margin: extra clearance required from obstacles (default: the task's ``collision.validity_margin``).
+        env: the scene itself (e.g. one with obstacles given at plan time); replaces ``extra_objects`` and
+            ``rotation_deg``.
     """
 
     def __init__(
@@ -51,10 +53,11 @@ class CollisionChecker:
         rotation_deg: float = 0.0,
         sdf_mode: str = "analytic",
         margin: float | None = None,
+        env=None,
     ):
         self.task = task
         self.robot = task.robot
-        self.env = task.env(extra_objects, rotation_deg)
+        self.env = task.env(extra_objects, rotation_deg) if env is None else env
         self.sdf_mode = sdf_mode
         self.margin = task.spec.collision.validity_margin if margin is None else float(margin)
         self.self_collision = task.spec.collision.self_collision

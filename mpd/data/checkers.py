@@ -37,7 +37,11 @@ class SphereChecker:
 
     kind = "spheres"
 
-    def __init__(self, task: Task, extra_objects: bool = False, clearance: float = 0.0, rotation_deg: float = 0.0):
+    def __init__(
+        self, task: Task, extra_objects: bool = False, clearance: float = 0.0, rotation_deg: float = 0.0, env=None
+    ):
+        """``env``: the scene itself (e.g. one with obstacles given at plan time) instead of ``extra_objects`` and
+        ``rotation_deg``."""
         self.task = task
         self.robot = robot = task.robot
         self.dof = robot.dof
@@ -62,7 +66,7 @@ class SphereChecker:
         self._init_links()
         pairs = robot.self_pairs.numpy() if task.spec.collision.self_collision else np.zeros((0, 2), int)
         self._init_pairs(pairs)
-        self._init_obstacles(task.env(extra_objects, rotation_deg))
+        self._init_obstacles(task.env(extra_objects, rotation_deg) if env is None else env)
         self._kernel = None
 
     def _init_links(self) -> None:

@@ -339,7 +339,7 @@ def plan_path(
     """One RRTConnect path (n_points, dof) in a task environment, as the dataset generator plans it (sphere
     model with the task's clearance, simplifyMax, resampling); None when no valid path was found.
 
-    ``env`` is one of ``task.env(...)`` (its extra objects and rotation are used). The planner of each
+    ``env`` is ``task.env(...)`` or one derived from it with obstacles given at plan time. The planner of each
     (task, scene, settings) is built once per process.
     """
     cl = task.spec.collision.clearance if clearance is None else float(clearance)
@@ -348,9 +348,9 @@ def plan_path(
         check_step=default_check_step(task) if check_step is None else float(check_step),
     )
     n = task.spec.trajectory.n_points if n_points is None else int(n_points)
-    key = (task.name, task.file_hash, env.extra_objects, env.rotation_deg, cl, settings, n)
+    key = (task.name, task.file_hash, env.key, cl, settings, n)
     if key not in _PLANNERS:
-        checker = SphereChecker(task, env.extra_objects, cl, env.rotation_deg)
+        checker = SphereChecker(task, clearance=cl, env=env)
         _PLANNERS[key] = JointSpacePlanner(checker, settings, n)
     r = _PLANNERS[key].plan(q_start, q_goal, problem_seed("plan_path", seed))
     return r.path if r.success else None

@@ -1,6 +1,11 @@
-"""An environment: fixed obstacles plus optional extra objects, optionally rotated about the robot base's z axis."""
+"""An environment: fixed obstacles plus optional extra objects, optionally rotated about the robot base's z axis, plus
+any obstacles given at plan time (:meth:`Environment.with_obstacles`)."""
 
 from __future__ import annotations
+
+import copy
+import hashlib
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -33,11 +38,46 @@ class Environment:
         )
         self._grids: dict[str, GridSDF] = {}
         self._authors_grids: dict[str, AuthorsGridSDF] = {}
+        # obstacles given at plan time (world frame, not rotated with the scene): part of the "extra" set
+        self.obstacles: tuple[Primitive, ...] = ()
+        self._base: Environment | None = None
 
     def __repr__(self) -> str:
         n_extra = len(self.extra) if self.extra is not None else 0
         n_fixed = len(self.fixed)
-        return f"Environment({self.dim}-D, {n_fixed} obstacles, {n_extra} extra, rotation {self.rotation_deg} deg)"
+        more = f", {len(self.obstacles)} given at plan time" if self.obstacles else ""
+        return (
+            f"Environment({self.dim}-D, {n_fixed} obstacles, {n_extra} extra{more}, rotation {self.rotation_deg} deg)"
+        )
+
+    @property
+    def key(self) -> tuple:
+        """What makes this scene: (extra objects on, rotation, digest of the plan-time obstacles or "")."""
+        return (self.extra_objects, self.rotation_deg, obstacles_digest(self.obstacles) if self.obstacles else "")
+
+    def with_obstacles(self, primitives: Sequence[Primitive]) -> Environment:
+        """This scene with more obstacles (world-frame primitives, e.g. what a robot's perception reports).
+
+        They join the extra objects' set (whose grid and checker rule they share; boxes get the task's corner radius),
+        so every consumer of the scene (the collision cost's grid, the ground-truth checker, the planners that check
+        states) sees them. The fixed obstacles and their grid are shared with this environment, not rebuilt: a new
+        obstacle set costs one grid of the extra set."""
+        prims = tuple(primitives)
+        for p in prims:
+            if p.centre.shape != (self.dim,):
+                raise ValueError(
+                    f"obstacle {p.name or p.kind}: centre has {p.centre.shape[0]} coordinates, not {self.dim}"
+                )
+        if not prims:
+            return self
+        env = copy.copy(self)
+        base = list(self.extra.primitives) if self.extra is not None else []
+        env.extra = ObjectSet(self.dim, base + list(prims), self.spec.box_corner_radius)
+        env.obstacles = self.obstacles + prims
+        env._base = self._base or self  # the fixed objects' grid is read from (and built in) the base scene
+        env._grids = {k: v for k, v in self._grids.items() if k == "fixed"}
+        env._authors_grids = {k: v for k, v in self._authors_grids.items() if k == "fixed"}
+        return env
 
     @property
     def primitives(self) -> list[tuple[Primitive, bool]]:
@@ -51,6 +91,8 @@ class Environment:
         return [s for s in (self.fixed, self.extra) if s is not None and len(s)]
 
     def grid(self, which: str = "fixed") -> GridSDF:
+        if which == "fixed" and which not in self._grids and self._base is not None:
+            self._grids[which] = self._base.grid("fixed")
         if which not in self._grids:
             objs = self.fixed if which == "fixed" else self.extra
             self._grids[which] = GridSDF(objs, *self.workspace, self.spec.sdf_cell_size)
@@ -84,3 +126,14 @@ class Environment:
             best_d = torch.full(x.shape[:-1], float("inf"), dtype=x.dtype, device=x.device)
             best_g = torch.zeros_like(x)
         return (best_d, best_g) if grad else best_d
+
+
+def obstacles_digest(prims: Sequence[Primitive]) -> str:
+    """A content hash of obstacles (kinds, centres, sizes, rotations to float64 bits), order-sensitive."""
+    h = hashlib.sha256()
+    for p in prims:
+        h.update(p.kind.encode())
+        for a in (p.centre, np.float64(p.radius), p.half_size, p.rotation):
+            if a is not None:
+                h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]

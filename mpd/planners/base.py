@@ -155,6 +155,15 @@ class Planner:
         else:
             self.normalizer = Normalizer(task.robot.q_min.double().numpy(), task.robot.q_max.double().numpy())
 
+    def use_environment(self, env) -> None:
+        """Plan in another scene of the same task from now on (e.g. ``self.env.with_obstacles(...)``): what the
+        planner checks and what its collision cost sees. Nothing else is rebuilt."""
+        if env.dim != self.env.dim or env.spec is not self.env.spec:
+            raise ValueError(f"{env!r} is not a scene of task {self.task.name}")
+        self.env = env
+        if self.cost is not None:
+            self.cost.env = env
+
     # -- helpers shared by the planners ---------------------------------------------------------------------
     def cost_grad_fn(self, ctx: Context, timer: Timer) -> Callable[[torch.Tensor], torch.Tensor]:
         """x (normalized free rows, (B, n_free, dof)) -> dC/dx, timing every call and each cost."""

@@ -19,7 +19,7 @@ def ik_goals(task, env, ctx: Context, n: int, generator: torch.Generator, restar
     """
     from mpd.robots.ik import solve_ik
 
-    checker = CollisionChecker(task, env.extra_objects, env.rotation_deg)
+    checker = CollisionChecker(task, env=env)
     pos = ctx.ee_pos.detach().cpu().double()[None].expand(n, 3)
     rot = ctx.ee_rot.detach().cpu().double()[None].expand(n, 3, 3)
     res = solve_ik(
