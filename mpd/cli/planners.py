@@ -13,33 +13,30 @@ from mpd.schema import ConfigError
 
 
 def _vector(text: str | None, name: str, dof: int) -> np.ndarray | None:
+    from mpd.planners.inputs import PlanningInputError, as_array
+
     if text is None:
         return None
     try:
-        v = np.array([float(x) for x in text.replace(" ", "").split(",") if x != ""])
+        v = [float(x) for x in text.replace(" ", "").split(",") if x != ""]
     except ValueError:
         raise ConfigError(f"--{name}", "", f"{text!r} is not a comma-separated list of numbers") from None
     if len(v) != dof:
         raise ConfigError(f"--{name}", "", f"{text!r} has {len(v)} values, the robot has {dof} joints")
-    return v
+    try:
+        return as_array(v, f"--{name}", (dof,))
+    except PlanningInputError as e:
+        raise ConfigError(e.argument, "", e.detail) from None
 
 
 def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, rotation_deg: float) -> None:
-    import torch
-
     from mpd.collision import CollisionChecker
+    from mpd.planners.inputs import PlanningInputError, check_configuration
 
-    qt = torch.as_tensor(q, dtype=torch.float64)
-    lo, hi = task.robot.q_min.numpy(), task.robot.q_max.numpy()
-    out = np.nonzero((q < lo) | (q > hi))[0]
-    if len(out):
-        j = int(out[0])
-        raise ConfigError(f"--{name}", "", f"joint {j} = {q[j]:g} is outside its limits [{lo[j]:g}, {hi[j]:g}]")
-    v = CollisionChecker(task, extra_objects, rotation_deg).configs(qt[None])
-    if not bool(v.env_free[0]):
-        raise ConfigError(f"--{name}", "", f"{list(np.round(q, 4))} is in collision with the environment")
-    if not bool(v.self_free[0]):
-        raise ConfigError(f"--{name}", "", f"{list(np.round(q, 4))} is in self collision")
+    try:
+        check_configuration(task, q, f"--{name}", CollisionChecker(task, extra_objects, rotation_deg))
+    except PlanningInputError as e:
+        raise ConfigError(e.argument, "", e.detail) from None
 
 
 @click.command("plan")
@@ -84,7 +81,8 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
     "model_ref",
     default="latest",
     show_default=True,
-    help="checkpoint path, model identity, or 'latest' for the task",
+    help="checkpoint path, model identity (cache or shipped), 'latest' (the newest trained here, else the default "
+    "shipped prior) or 'default' (the default shipped prior)",
 )
 @click.option("--set", "overrides", multiple=True, help="planner setting override, e.g. --set guide_lr=0.5")
 @click.option("--device", default=None)
@@ -217,26 +215,14 @@ def plan(
 
 
 def find_model(task, kind: str, parametrization: str, ref: str, device=None):
-    """A trained model: a checkpoint path, a model identity (or its prefix), or 'latest' for the task."""
-    from mpd.models.checkpoint import load_model
-    from mpd.models.train import list_models
+    """A trained model: a checkpoint path, a model identity (or its prefix; the cache, then the shipped priors),
+    'latest' (the newest of the cache, else the default shipped prior) or 'default' (the default shipped prior)."""
+    from mpd.models.find import find_model as find
 
-    p = Path(ref)
-    if ref != "latest" and p.exists():
-        return load_model(p, expect_task=task.name, expect_parametrization=parametrization, device=device)
-    metas = [m for m in list_models(task.name) if m.get("kind") == kind and m.get("parametrization") == parametrization]
-    if ref != "latest":
-        metas = [m for m in metas if str(m.get("identity", "")).startswith(ref)]
-    if not metas:
-        what = "no trained" if ref == "latest" else f"no {ref!r}"
-        raise ConfigError(
-            "--model",
-            "",
-            f"{what} {kind} model with the {parametrization} parametrization for {task.name} "
-            f"(train one: mpd train --task {task.name} --model {kind} --parametrization {parametrization})",
-        )
-    newest = max(metas, key=lambda m: Path(m["path"]).stat().st_mtime)
-    return load_model(newest["path"], expect_task=task.name, expect_parametrization=parametrization, device=device)
+    try:
+        return find(task.name, kind, parametrization, ref, device=device)
+    except ConfigError as e:
+        raise ConfigError("--model", "", e.detail) from None
 
 
 def _context_from_goal(task, qs: np.ndarray, qg: np.ndarray):
