@@ -21,6 +21,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("mpd.models",),
     ("mpd.planners",),
     ("mpd.metrics",),
+    ("mpd.api",),
     ("mpd.experiments",),
     ("mpd.viz",),
     ("mpd.cli",),
@@ -72,3 +73,18 @@ def test_the_checker_sees_an_upward_import(tmp_path):
     tree = ast.parse("def f():\n    from mpd.viz.report import build_report\n")
     (node,) = [n for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     assert layer_of(node.module)[1] == "mpd.viz" and layer_of("mpd.data.dataset")[0] < layer_of(node.module)[0]
+
+
+def test_the_package_facade_re_exports_the_api_lazily():
+    """``mpd/__init__.py`` (lowest layer) names the Python API of ``mpd.api`` and imports it on first use only (by
+    ``importlib``, the one deliberate reach upwards): ``import mpd`` stays light, ``mpd.load_planner`` works."""
+    import subprocess
+    import sys
+
+    code = "import sys, mpd; assert 'mpd.api' not in sys.modules; mpd.load_planner; assert 'mpd.api' in sys.modules"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True).returncode == 0
+    import mpd
+    import mpd.api
+
+    assert set(mpd._API) <= set(mpd.api.__all__)
+    assert all(getattr(mpd, n) is getattr(mpd.api, n) for n in mpd._API)
