@@ -333,3 +333,18 @@ def test_recipe_table_shows_the_goal_error_of_end_effector_goal_tasks_only():
     panda = ee["Spheres3D / Panda"]
     assert panda.axison and panda.get_title().endswith("EE pos. error [cm]") and len(panda.lines) > 0
     assert len(learning_curve_figure(prepare(pd.read_parquet(root / "recipe-study-2d" / "results.parquet"))).axes) == 6
+
+
+def test_summary_shows_a_dash_where_a_metric_does_not_apply(prepared):
+    """A joint-goal task has no EE error: its EE cells are a dash, not ``0.00 [0.00, 0.00]``; an end-effector-goal
+    task's are numbers."""
+    from mpd.viz.report_tables import summary_table
+
+    lines = summary_table(prepared).splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    pos, ori = header.index("EE pos. error [cm]"), header.index("EE ori. error [°]")
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
+    simple = [r for r in rows if r[0] == SIMPLE]
+    panda = [r for r in rows if r[0] == WAREHOUSE]
+    assert simple and all(r[pos] == r[ori] == "–" for r in simple)
+    assert panda and all(r[pos][0].isdigit() and r[ori][0].isdigit() for r in panda)

@@ -72,6 +72,31 @@ def task_order(tasks) -> list[str]:
     return [t for t in paper if t in present] + sorted(present - set(paper))
 
 
+@functools.lru_cache(maxsize=32)
+def _task_has_ee_goal(task: str) -> bool | None:
+    try:
+        from mpd.tasks import load_task
+
+        return load_task(task).ee_goal
+    except Exception:  # a task file this checkout does not have: decided from the errors below
+        return None
+
+
+def ee_goal(d: pd.DataFrame, task: str) -> bool:
+    """Whether ``task`` has an end-effector goal (its EE errors measure something); a joint-goal task's samples end
+    on their goal by construction, and its EE columns do not apply (``–`` in the tables)."""
+    known = _task_has_ee_goal(task)
+    if known is not None:
+        return known
+    g = d[d["task"] == task]
+    return bool("ee_pos_error" in g and (g["ee_pos_error"].abs() > 1e-9).any())
+
+
+def applies(d: pd.DataFrame, task: str, metric: str) -> bool:
+    """Whether ``metric`` means something on ``task``: the EE errors need an end-effector goal."""
+    return not metric.startswith(("ee_", "best_ee_")) or ee_goal(d, task)
+
+
 def short_task(task: str) -> str:
     """``EnvSpheres3D-RobotPanda`` -> ``Spheres3D / Panda``: short enough for a panel title."""
     env, _, robot = task.partition("-")
@@ -156,6 +181,9 @@ def scaled(e: stats.Estimate, scale: float) -> stats.Estimate:
 
 def interval(x, scale: float = 1.0, binary: bool = False) -> stats.Estimate:
     return scaled(stats.mean_interval(pd.to_numeric(pd.Series(x), errors="coerce"), binary=binary), scale)
+
+
+NOT_APPLICABLE = "–"  # a metric that does not apply (the EE errors of a joint-goal task) or has no value
 
 
 def fmt_estimate(e: stats.Estimate, fmt: str = "{:.3g}", bold_if_excludes_zero: bool = False) -> str:

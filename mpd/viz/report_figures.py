@@ -9,7 +9,6 @@ figure kind; the ablations are in :mod:`mpd.viz.report_ablations`, the shared lo
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,7 +24,7 @@ from mpd.viz.report_ablations import (
     rrtconnect_figure,
     smoothness_figure,
 )
-from mpd.viz.report_data import main_slice, method_label, method_order, short_task, task_order
+from mpd.viz.report_data import ee_goal, main_slice, method_label, method_order, short_task, task_order
 from mpd.viz.report_style import (
     SCENES,
     add_caption,
@@ -37,26 +36,6 @@ from mpd.viz.report_style import (
 from mpd.viz.report_tables import cost_columns, gradient_calls
 from mpd.viz.report_training import learning_curve_figure
 from mpd.viz.scene import style
-
-
-@functools.lru_cache(maxsize=32)
-@functools.lru_cache(maxsize=32)
-def _task_has_ee_goal(task: str) -> bool | None:
-    try:
-        from mpd.tasks import load_task
-
-        return load_task(task).ee_goal
-    except Exception:  # a task file this checkout does not have: decided from the errors below
-        return None
-
-
-def ee_goal(d: pd.DataFrame, task: str) -> bool:
-    known = _task_has_ee_goal(task)
-    if known is not None:
-        return known
-    g = d[d["task"] == task]
-    return bool("ee_pos_error" in g and (g["ee_pos_error"].abs() > 1e-9).any())
-
 
 # ------------------------------------------------------------------------------------- Fig. 6: swarm plots
 SWARM_METRICS = (

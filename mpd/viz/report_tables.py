@@ -18,9 +18,11 @@ from mpd.experiments.tracking import AXIS_PREFIXES
 from mpd.viz.report_data import (
     BINARY,
     EXTRA,
+    NOT_APPLICABLE,
     SUMMARY,
     TRAIN,
     VARIANT_AXES,
+    applies,
     interval,
     mean_ci,
     mean_std,
@@ -85,14 +87,18 @@ def _fmt_axis(v) -> str:
 
 
 def summary_table(d: pd.DataFrame) -> str:
-    """Mean [95 % interval] over contexts per task × scene × method (× the variant axes that vary in the run)."""
+    """Mean [95 % interval] over contexts per task × scene × method (× the variant axes that vary in the run); ``–``
+    where a metric does not apply (the EE errors of a joint-goal task)."""
     extra = _varying(d)
     mets = [m for m in SUMMARY if m[0] in d.columns]
     header = ["task", "scene", "method", *extra, "contexts", *[m[1] for m in mets]]
     rows = []
     for k, g in _groups(d, extra):
         row = [k["task"], k["scene"], method_label(k["method"]), *[_fmt_axis(k[c]) for c in extra], str(len(g))]
-        row += [mean_ci(g[col], scale, fmt, col in BINARY) for col, _, scale, fmt in mets]
+        row += [
+            mean_ci(g[col], scale, fmt, col in BINARY) if applies(d, k["task"], col) else NOT_APPLICABLE
+            for col, _, scale, fmt in mets
+        ]
         rows.append(row)
     align = ["l"] * (3 + len(extra)) + ["r"] * (1 + len(mets))
     return markdown_table(header, rows, align)
