@@ -22,7 +22,7 @@ COMMANDS = {
     "planners": ("mpd.cli.planners", "planners"),
     "run": ("mpd.cli.experiments", "run"),
     "runs": ("mpd.cli.experiments", "runs"),
-    "report": ("mpd.cli.viz", "report"),
+    "report": ("mpd.cli.reports", "report"),
     "view": ("mpd.cli.viz", "view"),
 }
 

@@ -184,10 +184,11 @@ def _match(d: pd.DataFrame, num: dict) -> pd.DataFrame:
 
 
 def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
-    """One row per number stated in the paper for which the run has the cell: (table, sentences by reference)."""
+    """One row per number stated in the paper for which the run has the cell (``number``: its index in
+    :func:`paper_numbers`): (table, sentences by reference)."""
     sentences: list[str] = []
     rows = []
-    for num in paper_numbers():
+    for index, num in enumerate(paper_numbers()):
         g = _match(d, num)
         if num["metric"] not in g.columns or g[num["metric"]].notna().sum() == 0:
             continue
@@ -197,6 +198,7 @@ def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
         ci = interval(g[num["metric"]].astype(float), float(num.get("scale", 1.0)), num["metric"] in BINARY)
         rows.append(
             {
+                "number": index,
                 "task": num["task"],
                 "scene": {"train": TRAIN, "extra": EXTRA}.get(num.get("scene", "any"), TRAIN + " (not stated)"),
                 "method": method_label(num["method"]),

@@ -1,0 +1,55 @@
+"""``mpd report``: a run's report (``mpd report RUN``), and the pages built from every committed report
+(``mpd report paper``: docs/RESULTS.md; ``mpd report index``: reports/README.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from mpd.cli.viz import report as run_report
+from mpd.paths import REPO_ROOT
+
+
+class _DefaultToRun(click.Group):
+    """A group whose first argument, when it names no subcommand, is a run: ``mpd report RUN`` is
+    ``mpd report run RUN``."""
+
+    def parse_args(self, ctx, args):
+        if not args or (args[0] not in self.commands and args[0] not in ctx.help_option_names):
+            args = ["run", *args]
+        return super().parse_args(ctx, args)
+
+
+@click.group("report", cls=_DefaultToRun)
+def report() -> None:
+    """A run's report (`mpd report RUN`, the default), or a page built from every committed report under
+    reports/ (`mpd report paper`)."""
+
+
+report.add_command(run_report, "run")
+
+
+def _write_page(text: str, out: Path, check: bool) -> None:
+    old = out.read_text() if out.exists() else None
+    if check:
+        if old != text:
+            raise click.ClickException(f"{out} differs from what the committed reports give (rerun without --check)")
+        click.echo(f"{out}: up to date")
+        return
+    if old != text:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)
+    click.echo(f"{out}: {'written' if old != text else 'unchanged'}")
+
+
+@report.command("paper")
+@click.option("--reports", "root", type=click.Path(path_type=Path), default=REPO_ROOT / "reports", show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=REPO_ROOT / "docs" / "RESULTS.md", show_default=True)
+@click.option("--check", is_flag=True, help="exit 1 if the file differs from what the reports give; write nothing")
+def paper(root: Path, out: Path, check: bool) -> None:
+    """Every number the paper states beside ours, with a verdict, and the paper's orderings with their paired
+    intervals: one page from the committed reports' results tables."""
+    from mpd.viz.results_page import results_page
+
+    _write_page(results_page(root), out, check)
