@@ -24,7 +24,7 @@ class _DefaultToRun(click.Group):
 @click.group("report", cls=_DefaultToRun)
 def report() -> None:
     """A run's report (`mpd report RUN`, the default), or a page built from every committed report under
-    reports/ (`mpd report paper`)."""
+    reports/ (`mpd report paper`, `mpd report index`)."""
 
 
 report.add_command(run_report, "run")
@@ -53,3 +53,15 @@ def paper(root: Path, out: Path, check: bool) -> None:
     from mpd.viz.results_page import results_page
 
     _write_page(results_page(root), out, check)
+
+
+@report.command("index")
+@click.option("--reports", "root", type=click.Path(path_type=Path), default=REPO_ROOT / "reports", show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="default: README.md in the reports folder")
+@click.option("--check", is_flag=True, help="exit 1 if the file differs from what the reports give; write nothing")
+def index(root: Path, out: Path | None, check: bool) -> None:
+    """The index of the committed reports: each one's question, spec, priors, date, headline number and whether a
+    later report supersedes it."""
+    from mpd.viz.reports_index import reports_index
+
+    _write_page(reports_index(root), out or root / "README.md", check)
