@@ -53,7 +53,7 @@ def tests(session: nox.Session) -> None:
     session.run(str(b / "python"), "-m", "pytest", *(session.posargs or ["-q"]), external=True)
 
 
-LINT_PATHS = ("mpd", "tests", "benchmarks", "noxfile.py")
+LINT_PATHS = ("mpd", "tests", "benchmarks", "reports", "noxfile.py")  # reports/: the reports' analysis scripts
 
 
 @nox.session(venv_backend="none")

@@ -1,4 +1,4 @@
-"""The four plans of the speed issue, in the setting the authors' planner is timed in (``../shared/official-bench``):
+"""The four plans of the speed issue, in the setting the authors' planner is timed in (their code at 3676cbf):
 100 samples, 15 DDIM steps (quadratic, eta 0.5), random weights of the authors' model sizes, 2 threads.
 
 * ``mpd/panda``: MPD on EnvSpheres3D-RobotPanda with the extra objects, the authors' released models' 24 free

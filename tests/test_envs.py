@@ -207,7 +207,7 @@ def test_environment_combines_fixed_and_extra():
 
 
 # ------------------------------------------------------------------------------------------- fractions
-# /work/shared/reference/README.md, "Expected free-space fractions" (large-N columns): training | extra
+# docs/PAPER_VS_CODE.md, "Expected free-space fractions" (large-N columns): training | extra
 REFERENCE = {
     "EnvSimple2D-RobotPointMass2D": (
         {"inside": 0.1829, "dilated": 0.2445},

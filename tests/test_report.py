@@ -348,3 +348,13 @@ def test_summary_shows_a_dash_where_a_metric_does_not_apply(prepared):
     panda = [r for r in rows if r[0] == WAREHOUSE]
     assert simple and all(r[pos] == r[ori] == "–" for r in simple)
     assert panda and all(r[pos][0].isdigit() and r[ori][0].isdigit() for r in panda)
+
+
+def test_report_writes_pdf_only_on_demand(tmp_path):
+    run = make_run(tmp_path, n_ctx=3, histories=False, small=True)
+    index = build_report(run, recordings=False, dpi=40, reference=None)
+    figures = run / "report" / "figures"
+    assert list(figures.glob("*.png")) and not list(figures.glob("*.pdf"))
+    assert "[PDF]" not in index.read_text()
+    build_report(run, recordings=False, formats=("png", "pdf"), dpi=40, reference=None)
+    assert {p.stem for p in figures.glob("*.pdf")} == {p.stem for p in figures.glob("*.png")}

@@ -36,7 +36,8 @@ def _resolve(run: str) -> Path:
     help="the run to compare this one with in reproducibility.md (default: the committed reports/<spec>/)",
 )
 @click.option("--keep-going", is_flag=True, help="exit 0 even when a figure cannot be drawn (it is listed)")
-def report(run: str, no_recordings: bool, force: bool, reference: str | None, keep_going: bool) -> None:
+@click.option("--pdf", is_flag=True, help="write every figure as PDF too (beside its PNG)")
+def report(run: str, no_recordings: bool, force: bool, reference: str | None, keep_going: bool, pdf: bool) -> None:
     """Rebuild the recordings and the report of RUN (a run folder, a run id, `latest`, or a spec name: its latest
     run), and print where its index.md is. A figure that cannot be drawn fails the command (exit 1)."""
     from mpd.viz.report import FigureError, build_report
@@ -45,7 +46,12 @@ def report(run: str, no_recordings: bool, force: bool, reference: str | None, ke
     ref = _resolve(reference) if reference else "auto"
     try:
         index = build_report(
-            run_dir, recordings=not no_recordings, force_recordings=force, reference=ref, keep_going=keep_going
+            run_dir,
+            recordings=not no_recordings,
+            force_recordings=force,
+            reference=ref,
+            keep_going=keep_going,
+            formats=("png", "pdf") if pdf else ("png",),
         )
     except FigureError as e:
         raise click.ClickException(f"report {run_dir / 'report' / 'index.md'}: {e} (--keep-going: exit 0)") from None

@@ -3,7 +3,7 @@
 The torch path of :class:`mpd.costs.ee_pose.EEPoseCost` (the final configurations' kinematics gathered from the FK of
 all configurations, :func:`mpd.costs.ee_pose.ee_pose_error` with the SE(3) logarithm and its exact gradient
 (:mod:`mpd.costs.se3`), :meth:`mpd.robots.robot.Robot.ee_vjp`) is about a hundred torch operations on (B, 3) rows,
-~0.9-1.2 ms for 100 Panda trajectories on the 2-core CPU, nearly all of it per-operation overhead. This pass (numba,
+whose time is nearly all per-operation overhead. This pass (numba,
 ``cache=True``) does the same arithmetic row by row: the end-effector pose from the frame of its joint (read where
 the FK left it), the error of either preset with the same branches (the series below the same angle, the axis
 from the symmetric part near pi), the gradient and its product with the geometric Jacobian. It computes in float64

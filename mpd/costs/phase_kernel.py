@@ -1,8 +1,8 @@
 """Compiled fast path of the per-point phase costs on the CPU: velocity, acceleration and joint limits in one pass.
 
 Each of these costs is a few elementwise operations on the dense (B, n, dof) trajectory fields, a dozen torch
-kernels each (square, sum, sqrt, the quadrature weights, the gradient's scaling, ...), ~0.15-0.2 ms a cost for 100
-trajectories x 128 points on the 2-core CPU, nearly all of it per-kernel overhead. This pass (numba, ``cache=True``)
+kernels each (square, sum, sqrt, the quadrature weights, the gradient's scaling, ...), whose time on a CPU is
+nearly all per-kernel overhead. This pass (numba, ``cache=True``)
 reads the stacked fields (B, 3, n, dof) (q, q', q'', :attr:`mpd.trajectory.Dense.stacked`) once and writes each
 cost's value and the weighted sum of their gradients into one (B, 3, n, dof) buffer, the layout the chain rule
 reads (:meth:`mpd.trajectory.LinearTrajectory.grad_to_free_stacked`), in the fields' memory layout.

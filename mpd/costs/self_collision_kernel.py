@@ -1,13 +1,12 @@
 """Compiled fast path of the self-collision cost on the CPU: culling, the deepest pair and its Jacobian product.
 
 :class:`mpd.costs.self_collision.SelfCollisionCost` culls in torch with bounding spheres of whole frames, then of
-clusters, then takes the maximum over all sphere pairs of the configurations that remain, as passes over index
-gathers (~5 ms for 100 Panda trajectories x 128 points on one core, for the few configurations that need the
-exact pass). This kernel (numba, ``cache=True``) makes the same tests: the same bounding spheres, the same pairs,
-the same penetration ``r_i + r_j + eps - d_ij`` and its deepest pair (the first of equal ones in the torch path's
-order), each level a pair at a time over all the configurations still in, loops the compiler vectorizes. Given
-the kinematics it also maps the deepest pairs' gradients to the joints (:func:`_pair_vjp`), so the few active
-configurations need no torch pass.
+clusters, then takes the maximum over all sphere pairs of the configurations that remain, as passes over index gathers
+(costly for the few configurations that need the exact pass). This kernel (numba, ``cache=True``) makes the same tests:
+the same bounding spheres, the same pairs, the same penetration ``r_i + r_j + eps - d_ij`` and its deepest pair (the
+first of equal ones in the torch path's order), each level a pair at a time over all the configurations still in, loops
+the compiler vectorizes. Given the kinematics it also maps the deepest pairs' gradients to the joints
+(:func:`_pair_vjp`), so the few active configurations need no torch pass.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Validity checkers for sampling contexts and for the planner: the sphere model in numpy, or PyBullet meshes.
 
-The planner asks about one configuration or one short edge at a time, where torch's per-call overhead (about
-1 ms for the Panda, see ``mpd data measure``) dominates. :class:`SphereChecker` is the sphere model of
+The planner asks about one configuration or one short edge at a time, where torch's per-call overhead (see
+``mpd data measure``) dominates. :class:`SphereChecker` is the sphere model of
 :class:`mpd.collision.CollisionChecker` (same FK, same analytic SDF of spheres and rounded boxes, same
 self-collision pairs): ``check`` in numpy, pinned to ``CollisionChecker`` by a test, and ``valid`` /
 ``edge_valid``, the same computation compiled per state (:mod:`mpd.data.sphere_kernel`, numba), pinned to

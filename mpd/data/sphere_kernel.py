@@ -1,6 +1,6 @@
 """Compiled validity of configurations under the sphere model: the fast path of :class:`SphereChecker`.
 
-The planner asks about one state or one short edge at a time. In numpy each such call costs ~0.5 ms of
+The planner asks about one state or one short edge at a time. In numpy each such call is mostly
 per-operation overhead for the Panda (7 joints x a few small array operations, two SDF passes); this module
 does the same computation per state in one compiled loop (numba, ``cache=True``) and stops at the first
 colliding state, so an edge in collision usually costs a few states. The arithmetic is the numpy checker's:

@@ -1,8 +1,8 @@
 """A diffusion training step captured in a CUDA graph: the whole step replayed as one launch.
 
 On a GPU the training step of the priors' networks (a few thousand small kernels: the U-Net's forward and backward,
-gradient clipping, AdamW, the EMA) is bound by kernel launches, not by arithmetic: 17-19 steps/s on an H200 at batch
-512, 1024 and 2048 alike (benchmarks/results/2026-12-04-h200-gpu-check.json). Captured once, the step replays
+gradient clipping, AdamW, the EMA) is bound by kernel launches, not by arithmetic: its rate on a large GPU is the
+same at batch 512, 1024 and 2048 (benchmarks/results/2026-12-04-h200-gpu-check.json). Captured once, the step replays
 without a launch per kernel. What the step computes is unchanged (the same batch draw, loss, clipping, fused AdamW
 and EMA, in the same order, from the same seeded generator), so it is an execution mode, not part of a model's
 identity; the values that change from step to step (learning rate, EMA weight) are device tensors written before

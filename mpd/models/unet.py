@@ -29,10 +29,8 @@ from torch.nn import functional as F
 KERNEL_SIZE = 5
 N_GROUPS = 8
 # The compiled CPU network's kernels called from generated C++ instead of a Python wrapper: a pass of the Panda
-# U-Net (~100 kernels, 3 GFLOP at batch 100) spent ~5 ms of its ~23 ms in the Python wrapper on a 2-core Zen 4;
-# with it, a 15-step Dprior plan took 0.27 s instead of 0.39 s, EnvSimple2D's 0.14 s instead of 0.19 s (before the
-# weights were frozen, :func:`_frozen`; benchmarks/test_bench_plans.py). Compiling takes no longer (33 s instead of
-# 43 s for EnvSimple2D, cold cache).
+# U-Net (~100 kernels) spends a sizeable part of its time in the Python wrapper otherwise, and compiling takes no
+# longer (benchmarks/test_bench_plans.py measures the plans).
 CPU_CPP_WRAPPER = True
 
 
@@ -86,10 +84,9 @@ def mish(x: torch.Tensor) -> torch.Tensor:
     """Mish, x tanh(softplus(x)), written with one exponential: tanh(log(1 + e^x)) = n / (n + 2), n = e^x (e^x + 2).
 
     The form the compiled network uses. Inductor lowers ``F.mish`` to an exponential, a log1p and a tanh per
-    element; this is one exponential and one division, and made the compiled U-Net pass at batch 100 1.2-1.4x
-    faster end to end (bfloat16, AMD Zen 4, 2 threads: EnvSimple2D 5.5-6.2 -> 4.0-4.4 ms, Panda 12.2-14.4 ->
-    9.8-10.8 ms). Equal to ``F.mish`` to float rounding (tests); the eager network keeps ``nn.Mish`` (one ATen
-    kernel there)."""
+    element; this is one exponential and one division, which makes the compiled U-Net pass faster end to end
+    (benchmarks/test_bench_models.py). Equal to ``F.mish`` to float rounding (tests); the eager network keeps
+    ``nn.Mish`` (one ATen kernel there)."""
     e = torch.exp(torch.clamp(x, max=MISH_LINEAR_FROM))
     n = e * (e + 2)
     return torch.where(x > MISH_LINEAR_FROM, x, x * n / (n + 2))
@@ -273,7 +270,7 @@ class TemporalUnet(nn.Module):
         per input shape and autocast state (``dynamic=False``). Call it under ``torch.no_grad()`` with the step as a
         tensor, ``(B,)`` or ``(1,)`` for one step for the whole batch (a Python int would be compiled as a
         constant). Kept on the module and rebuilt when a parameter changes (its version counter or storage), since
-        frozen weights would otherwise go stale. The first call per shape compiles (~30-70 s on a 2-core CPU);
+        frozen weights would otherwise go stale. The first call per shape compiles (tens of seconds on a CPU);
         ``PlannerSettings.network_compile`` turns it on for a planner. On a CPU the graph's kernels are called from
         generated C++ (inductor's ``cpp_wrapper``, :data:`CPU_CPP_WRAPPER`) rather than from Python."""
         key = self._weights_key()
@@ -293,8 +290,8 @@ class TemporalUnet(nn.Module):
 
     def _weights_key(self) -> tuple:
         """The parameters' version counters, storages, dtypes and devices: what a frozen graph depends on. The
-        parameters are listed once with the dictionaries that hold them (walking the modules for every pass took
-        0.23-0.33 ms, 5 % of an EnvSimple2D pass); a parameter replaced by another object is seen there."""
+        parameters are listed once with the dictionaries that hold them (walking the modules for every
+        pass was a visible part of a small network's pass); a parameter replaced by another object is seen there."""
         refs = self.__dict__.get("_param_refs")
         if refs is None or any(d.get(name) is not p for d, name, p in refs):
             refs = [(m._parameters, name, p) for m in self.modules() for name, p in m._parameters.items()]
@@ -316,7 +313,7 @@ class TemporalUnet(nn.Module):
         if torch.compiler.is_compiling() and getattr(self, "_generation", 0) < 0:
             raise AssertionError("a compiled graph's generation is never negative")
         # one step and one context for the whole batch (sampling): the step embedding and every FiLM layer run on
-        # one row, broadcast over the batch (the FiLM products on 100 equal rows were ~1 ms of an 18 ms Panda pass)
+        # one row, broadcast over the batch (not the same products on every row)
         rows = 1 if context_emb.shape[0] == 1 and shared_step(t) else b
         if context_emb.shape[0] != rows:
             context_emb = context_emb.expand(rows, -1)

@@ -2,8 +2,8 @@
 
 The torch pass runs one (11, 3) x (3, 3B) product per joint and one (points, 4) x (4, 3B) product per frame with
 points: matrix products of an inner dimension of 3 or 4, which BLAS runs at a fraction of the machine's speed, and
-which on the 2-core CPU were at times 3-5x slower again (MKL's sgemm, over stretches of minutes, in every process;
-the elementwise kernels were not: FK of 100 x 128 Panda configurations 2.2 ms, then 6-7 ms). This kernel (numba,
+which on a 2-core CPU were at times several times slower again (MKL's sgemm, over stretches of minutes, in every
+process; the elementwise kernels were not). This kernel (numba,
 ``cache=True``) does the same arithmetic, term by term in the order of those products, in loops along the
 configurations (which the compiler vectorizes): the frames, joint axes, joint origins and attached points in one
 pass, in blocks of configurations that stay in the first-level cache.

@@ -1,4 +1,4 @@
-"""A run's report: ``run_dir/report/`` with figures (PNG + PDF), Markdown tables and ``index.md``.
+"""A run's report: ``run_dir/report/`` with figures (PNG; PDF too on demand), Markdown tables and ``index.md``.
 
 Everything comes from the results table (``mpd.experiments.results.read_results``), the manifest and, for the
 scene figures and the Rerun recordings, the recorded histories. Rebuilding it from the same table gives the same
@@ -12,7 +12,7 @@ Markdown: nothing in it depends on when or where it was built.
       reproducibility.md  every cell against a reference run: bit-identical, equivalent, differs, and why
       paper.md            the paper's stated numbers beside ours
       timing.md           time per cell, per cost
-      figures/<name>.png|.pdf
+      figures/<name>.png  (and .pdf with formats=("png", "pdf"): `mpd report RUN --pdf`)
 """
 
 from __future__ import annotations
@@ -183,8 +183,9 @@ def _provenance_md(run_dir: Path, man: dict, df: pd.DataFrame, info: dict) -> li
 
 
 # ---------------------------------------------------------------------------------------------- figures
-def _save(fig, out: Path, formats: tuple[str, ...] = ("png", "pdf"), dpi: int = 200) -> None:
-    """PNG and PDF, each written to a temporary name and renamed (a report being rebuilt is never half-written)."""
+def _save(fig, out: Path, formats: tuple[str, ...] = ("png",), dpi: int = 200) -> None:
+    """Each format (PNG, and PDF when asked), written to a temporary name and renamed (a report being rebuilt is
+    never half-written)."""
     from mpd.viz.scene import style
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -358,7 +359,7 @@ def build_report(
     run_dir: str | Path,
     recordings: bool = True,
     force_recordings: bool = False,
-    formats: tuple[str, ...] = ("png", "pdf"),
+    formats: tuple[str, ...] = ("png",),
     dpi: int = 200,
     reference: str | Path | None = "auto",
     keep_going: bool = False,

@@ -25,7 +25,8 @@ for (task, method, extra), g in d.groupby(["task", "method", "extra_objects"]):
     row = [task.split("-")[0], method, "extra objects" if extra else "training", str(len(p))]
     for v in order:
         gv = g[g["variant"] == v]
-        row += [f"{100 * gv['fraction_valid'].mean():.1f}", f"{gv['vendi'].mean():.2f}"]
+        vendi = gv["vendi"].mean()  # missing where no context has two valid samples
+        row += [f"{100 * gv['fraction_valid'].mean():.1f}", "–" if pd.isna(vendi) else f"{vendi:.2f}"]
     row.append(" / ".join(f"{100 * g[g['variant'] == v]['success'].mean():.0f}" for v in order))
     diff = 100 * (p["compiled bf16"] - p["eager fp32"])
     row.append(f"{diff.mean():+.1f} [{diff.min():+.1f}, {diff.max():+.1f}]")

@@ -2,7 +2,7 @@
 ``benchmarks/test_bench_sampling_time.py``: the time to denoise 1000 Panda trajectories (15 DDIM steps) and map them to
 128 dense points, by representation (B-spline control points n_b, dense waypoints H = 128).
 
-    python reports/sampling-time-bspline-waypoints/plot.py results.json   # figure.png and .pdf beside this file
+    python reports/sampling-time-bspline-waypoints/plot.py results.json [--pdf]   # figure.png (and .pdf) here
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 HERE = Path(__file__).resolve().parent
 
 
-def main(path: Path) -> None:
+def main(path: Path, pdf: bool = False) -> None:
     bench = json.loads(path.read_text())["benchmarks"]
     rows = sorted(
         ((b["extra_info"]["parametrization"], b["extra_info"]["n_params"], b["stats"]) for b in bench),
@@ -43,11 +43,11 @@ def main(path: Path) -> None:
     )
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    for ext in ("png", "pdf"):
+    for ext in ("png", "pdf") if pdf else ("png",):
         fig.savefig(HERE / f"figure.{ext}")
     for (kind, n, s), m in zip(rows, med, strict=True):
         print(f"{kind:9s} {n:4d}: median {m:.2f} s [{s['min']:.2f}, {s['max']:.2f}]")
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]))
+    main(Path(sys.argv[1]), pdf="--pdf" in sys.argv[2:])
