@@ -10,7 +10,8 @@ re-installed only when ``pyproject.toml`` changes: a second ``nox -s demo`` star
     nox -s view -- RUN [--web]    open the Rerun viewer on a run's recordings
     nox -s benchmarks             pytest-benchmark suites, JSON under .benchmarks/
     nox -s gpu                    the prepared GPU check on a CUDA machine (benchmarks/gpu_check.py): JSON summary
-    nox -s gpu_wheels             the wheels the offline lent GPU machine lacks, for its Python 3.12, into .whl/
+    nox -s gpu_wheels             the wheels the offline GPU machine lacks, for its Python 3.12, into .whl/
+    nox -s wheels                 the mpd wheel and the mpd-priors wheel (the shipped priors) into dist/
 """
 
 from __future__ import annotations
@@ -165,3 +166,18 @@ def gpu_wheels(session: nox.Session) -> None:
         "# pybullet_data's URDF files that mpd reads, unchanged, for a machine without pybullet (noxfile: gpu_wheels)\n"
         "import os\n\n\ndef getDataPath():\n    return os.path.dirname(__file__)\n"
     )
+
+
+@nox.session(venv_backend="none")
+def wheels(session: nox.Session) -> None:
+    """The mpd wheel (small: code, task files, specs, dataset definitions) and the companion mpd-priors wheel (the
+    shipped priors, packaging/mpd-priors) into dist/; install both by name: pip install --find-links dist mpd
+    mpd-priors."""
+    b = _venv(session)
+    out = ROOT / "dist"
+    for src in (ROOT, ROOT / "packaging" / "mpd-priors"):
+        session.run(str(b / "python"), "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-w",
+                    str(out), external=True)  # fmt: skip
+        shutil.rmtree(src / "build", ignore_errors=True)
+    for w in sorted(out.glob("*.whl")):
+        session.log(f"{w.name}: {w.stat().st_size / 1e6:.1f} MB")

@@ -17,14 +17,13 @@ from pathlib import Path
 from typing import Literal
 
 from mpd.data.planning import PlannerSettings, default_check_step
-from mpd.paths import REPO_ROOT, cache_dir
+from mpd.paths import DATASETS_DIR, cache_dir
 from mpd.robots.spec import robot_files
 from mpd.schema import ConfigError, file_sha256, from_dict, read_toml, stable_hash, to_dict
 from mpd.tasks import Task, load_task
 
 # Bump when a change of the generator changes the data of an unchanged definition (part of the identity).
 GENERATOR_VERSION = 1
-DATASETS_DIR = REPO_ROOT / "datasets"
 
 
 @dataclass(frozen=True)

@@ -43,12 +43,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mpd.paths import SPECS_DIR
 from mpd.planners.settings import PRESETS, PlannerSettings
 from mpd.planners.validation import check_setting, check_task_settings
 from mpd.schema import ConfigError, from_dict, read_toml, stable_hash
 from mpd.trajectory import PARAMETRIZATIONS
 
-SPEC_DIR = Path(__file__).resolve().parents[2] / "benchmarks" / "specs"
+SPEC_DIR = SPECS_DIR  # benchmarks/specs/ of the checkout, or the wheel's copy
 
 # every axis with its allowed values (None: any value of the right type)
 AXES: dict[str, tuple | None] = {

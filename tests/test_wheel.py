@@ -1,0 +1,56 @@
+"""The installed wheels work outside the repository: `nox -s wheels`'s two wheels (mpd, small; mpd-priors, the
+shipped priors) installed by name into a fresh virtual environment, then, from an empty folder, the quickstart page
+plans with the shipped prior, `mpd plan` finds the shipped prior without --model, and `mpd run quick --dry-run` finds
+the built-in spec. Slow: a fresh environment installs torch and the other dependencies."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
+
+
+def _run(cmd, **kw):
+    r = subprocess.run(cmd, capture_output=True, text=True, **kw)
+    assert r.returncode == 0, f"{cmd}: {r.stdout[-1500:]}\n{r.stderr[-3000:]}"
+    return r.stdout
+
+
+def test_wheels_install_by_name_and_plan_outside_the_repository(tmp_path):
+    dist = tmp_path / "dist"
+    for src in (REPO, REPO / "packaging" / "mpd-priors"):
+        _run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-w", str(dist)])
+    wheels = {w.name.split("-")[0]: w for w in dist.glob("*.whl")}
+    assert set(wheels) == {"mpd", "mpd_priors"}
+    assert wheels["mpd"].stat().st_size < 5e6 and wheels["mpd_priors"].stat().st_size < 100e6
+    venv = tmp_path / "venv"
+    _run([sys.executable, "-m", "venv", str(venv)])
+    py, mpd_cli = venv / "bin" / "python", venv / "bin" / "mpd"
+    _run([str(py), "-m", "pip", "install", "-q", "--find-links", str(dist), "mpd", "mpd-priors"])
+    work = tmp_path / "empty folder é"  # outside the repository; a space and a non-ASCII character in the path
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("MPD_CACHE", "PYTHONPATH", "MPD_PRIORS", "MPD_RUNS")}
+    env.update(HOME=str(tmp_path / "home"), MPD_COMPILE="0")
+    code = re.search(r"```python file=quickstart.py\n(.*?)^```", (REPO / "docs/QUICKSTART.md").read_text(), re.S | re.M)
+    (work / "quickstart.py").write_text(code.group(1))
+    out = _run([str(py), "quickstart.py"], cwd=work, env=env)
+    assert "MotionPlanner(mpd on EnvWarehouse-RobotPanda, model" in out and (work / "quickstart.rrd").is_file()
+    where = _run(
+        [str(py), "-c", "import mpd, mpd.paths as p; print(mpd.__file__, p.cache_dir(), p.IN_CHECKOUT)"],
+        cwd=work,
+        env=env,
+    )
+    assert str(REPO) not in where and "False" in where and str(tmp_path / "home" / ".cache" / "mpd") in where
+    out = _run([str(mpd_cli), "plan", "--task", "EnvSimple2D-RobotPointMass2D", "--planner", "mpd", "--n-samples", "8",
+                "--start", "-0.8,-0.8", "--goal", "0.8,0.8", "--out", "plan"], cwd=work, env=env)  # fmt: skip
+    assert "context 0: success" in out and (work / "plan" / "metrics.json").is_file()
+    out = _run([str(mpd_cli), "run", "quick", "--dry-run"], cwd=work, env=env)
+    assert "quick" in out
+    assert "9565f76e" in _run([str(mpd_cli), "models", "shipped"], cwd=work, env=env)
