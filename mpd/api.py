@@ -15,6 +15,7 @@ with one line that names the argument.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -90,7 +91,10 @@ class MotionPlan:
     metrics: dict[str, float]
     timings: dict[str, float]
     provenance: dict[str, Any]
-    history: list[tuple[str, np.ndarray]] | None = field(default=None, repr=False)
+    # with record_history: (label, dense positions (n_samples, n_points, dof), valid (n_samples,)) per step
+    history: list[tuple[str, np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
+    _task: Any = field(default=None, repr=False)
+    _env: Any = field(default=None, repr=False)
 
     @property
     def n_samples(self) -> int:
@@ -100,6 +104,29 @@ class MotionPlan:
         """The arrays as tensors (float64; bool for the flags)."""
         keys = ("t", "q", "dq", "ddq", "control_points", "valid", "collision_free", "limits_ok", "cost")
         return {k: torch.from_numpy(np.asarray(getattr(self, k))) for k in keys}
+
+    def figure(self, path: str | Path | None = None, title: str | None = None):
+        """The paper-style figure of this plan: the scene with every trajectory (valid ones solid) and the joints'
+        position / velocity / acceleration against time; written to ``path`` (.png or .pdf) when given."""
+        from mpd.viz.scene import trajectory_figure
+
+        title = title or f"{self.provenance.get('method')} - {self._task.name}"
+        return trajectory_figure(self._task, self._env, self.q, self.dq, self.ddq, self.valid, out=path, title=title)
+
+    def recording(self, path: str | Path) -> Path:
+        """A Rerun recording (.rrd) of this plan: the scene, the trajectories, the best one animated, and with
+        ``record_history=True`` the batch at every denoising step; open it with ``rerun PATH``."""
+        from mpd.viz.recording import record_history
+
+        hist: dict[str, Any] = {"q": self.q, "valid": self.valid}
+        if self.history:
+            hist.update(
+                steps_q=np.stack([q for _, q, _ in self.history]),
+                steps_valid=np.stack([v for _, _, v in self.history]),
+                steps_label=np.array([label for label, _, _ in self.history]),
+            )
+        params = {k: self.provenance.get(k) for k in ("method", "extra_objects", "rotation_deg", "seed")}
+        return record_history(path, self._task, params, hist, env=self._env)
 
     def __repr__(self) -> str:
         best = "none valid" if self.best is None else f"best #{self.best}"
@@ -225,6 +252,15 @@ class MotionPlanner:
             self._scenes[key] = self._base_env.with_obstacles(prims)
         return self._scenes[key]
 
+    def check(self, plan: MotionPlan, obstacles: Sequence[Sphere | Box] | None = None) -> np.ndarray:
+        """Validity (n_samples,) of a plan's trajectories in this task's scene with ``obstacles`` (e.g. obstacles
+        seen after it was planned), by the same ground-truth checker as :attr:`MotionPlan.valid`."""
+        from mpd.collision import CollisionChecker
+
+        env = self.scene(obstacles)
+        t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+        return CollisionChecker(self.task, env=env).trajectories(t(plan.q), t(plan.dq), t(plan.ddq)).valid.numpy()
+
     # -- planning ------------------------------------------------------------------------------------------------
     def warmup(self, n_samples: int = 100) -> float:
         """Compile the denoising network for batches of ``n_samples`` (done by the first plan of that size
@@ -311,7 +347,13 @@ class MotionPlanner:
         n = dense.q.shape[1]
         history = None
         if res.history is not None:
-            history = [(f"{h.label} {h.step}", h.free.detach().cpu().double().numpy()) for h in res.history]
+            history = []
+            for h in res.history:
+                B = h.free.shape[0]
+                qs_b = ctx.q_start.to(h.free).expand(B, -1)
+                qg_b = None if ctx.q_goal is None else ctx.q_goal.to(h.free).expand(B, -1)
+                hq = self._planner.param.dense(h.free, qs_b, qg_b).q.detach().cpu().double()
+                history.append((f"{h.label} {h.step}", hq.numpy(), checker.trajectories(hq).valid.numpy()))
         return MotionPlan(
             t=np.linspace(0.0, float(d.duration), n),
             q=dense.q.numpy(),
@@ -328,6 +370,8 @@ class MotionPlanner:
             timings=timings,
             provenance=self._provenance(env, seed, res.info),
             history=history,
+            _task=self.task,
+            _env=env,
         )
 
     def _cost(self, env, free: torch.Tensor, ctx):
@@ -396,8 +440,9 @@ def load_planner(
     ``model``: None for the task's default shipped prior (the one trained longest), a model identity or a prefix of
     one (the cache, then the shipped priors), ``"latest"`` (the newest trained here) or a checkpoint path; methods
     without a model ignore it. ``extra_objects`` / ``rotation_deg``: the task's own scene variants. ``fast``: the
-    compiled network in bf16 where the CPU has it (:data:`FAST_SETTINGS`); ``fast=False`` is the eager fp32
-    network. ``settings``: :class:`mpd.planners.PlannerSettings` fields, e.g. ``guide_lr=0.5``."""
+    compiled network in bf16 where the CPU has it (:data:`FAST_SETTINGS`); ``fast=False`` (or the environment
+    variable ``MPD_COMPILE=0``) is the eager fp32 network. ``settings``: :class:`mpd.planners.PlannerSettings`
+    fields, e.g. ``guide_lr=0.5``."""
     from mpd.models.find import find_model
     from mpd.planners import get_planner_class, make_planner
     from mpd.planners.validation import check_task_settings
@@ -415,6 +460,7 @@ def load_planner(
     if preset not in ("official", "paper"):
         raise PlanningInputError("preset", f"{preset!r} is not official or paper")
     check_task_settings(t)
+    fast = fast and os.environ.get("MPD_COMPILE", "1").strip().lower() not in ("0", "false", "no", "off")
     overrides = {**(FAST_SETTINGS if fast and cls.model_kind == "diffusion" else {}), **settings}
     from mpd.planners.settings import PlannerSettings
 

@@ -21,9 +21,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("mpd.models",),
     ("mpd.planners",),
     ("mpd.metrics",),
-    ("mpd.api",),
     ("mpd.experiments",),
     ("mpd.viz",),
+    ("mpd.api",),
     ("mpd.cli",),
 )
 # (importing module, imported layer's package): known exceptions; none since the verbs moved into mpd/cli/

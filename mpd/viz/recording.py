@@ -360,21 +360,28 @@ def _log_final(rec, task, q: np.ndarray, valid: np.ndarray | None, best: int, ti
 
 
 def record_history(
-    path: str | Path, task, params: Mapping[str, Any], history: Mapping[str, np.ndarray], blueprint: bool = True
+    path: str | Path,
+    task,
+    params: Mapping[str, Any],
+    history: Mapping[str, np.ndarray],
+    blueprint: bool = True,
+    env=None,
 ) -> Path:
     """Write the Rerun recording of one (cell, context) to ``path`` (``.rrd``); returns the path.
 
     ``task``: a :class:`mpd.tasks.Task` or its name. ``params``: the cell's parameters (``extra_objects``,
     ``rotation_deg``, ``method``, ...; a results row will do). ``history``: ``q`` (B, n, dof) final dense
     trajectories in time, ``valid`` (B,), optionally ``steps_q`` (S, B, n, dof), ``steps_valid`` (S, B) and
-    ``steps_label`` (S,) (the runner's recorded history).
+    ``steps_label`` (S,) (the runner's recorded history). ``env``: the scene to draw (default: the task's, as
+    ``params`` says; e.g. one with obstacles given at plan time).
     """
     import rerun as rr
 
     task = _as_task(task)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    env = task.env(bool(params.get("extra_objects") or False), float(params.get("rotation_deg") or 0.0))
+    if env is None:
+        env = task.env(bool(params.get("extra_objects") or False), float(params.get("rotation_deg") or 0.0))
     q = np.asarray(history["q"], dtype=np.float64)
     valid = np.asarray(history["valid"], bool).reshape(-1) if history.get("valid") is not None else None
     best, best_valid = best_index(q, valid)
