@@ -36,7 +36,7 @@ from mpd.trajectory import make_parametrization
 pytestmark = pytest.mark.benchmark
 
 THREADS = 2
-# the authors' released models: 18 desired control points -> 24 learnable + 5 fixed for the Panda (reference README)
+# the authors' released models: 18 desired control points -> 24 learnable + 5 fixed for the Panda (PAPER_VS_CODE.md)
 AUTHORS_N_CONTROL = {"EnvSpheres3D-RobotPanda": 29, "EnvSimple2D-RobotPointMass2D": 22}
 TASKS = {"panda": "EnvSpheres3D-RobotPanda", "simple2d": "EnvSimple2D-RobotPointMass2D"}
 PRECISIONS = ["fp32"] + (["bf16"] if native_bf16(torch.device("cpu")) else [])

@@ -54,7 +54,7 @@ def test_sphere_centres_are_link_frames_times_offsets(name):
 
 
 def test_reference_fk_values(panda_scene):
-    """The numbers of the reference README, "URDF check"."""
+    """The numbers of docs/PAPER_VS_CODE.md, "URDF check"."""
     panda = get_robot("RobotPanda")
     for q, p_ref, r_ref in [
         (np.zeros(7), [0.088, 0.0, 0.926], [[0.70711, 0.70711, 0], [0.70711, -0.70711, 0], [0, 0, -1]]),

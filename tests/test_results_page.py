@@ -12,7 +12,7 @@ import pytest
 
 from mpd import stats
 from mpd.viz.report_tables import paper_numbers
-from mpd.viz.results_page import ORDERINGS, number_verdict, ordering_verdict, results_page
+from mpd.viz.results_page import ORDERINGS, glance, number_verdict, ordering_verdict, results_page, with_glance
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "RESULTS.md"
@@ -21,6 +21,13 @@ RESULTS = ROOT / "docs" / "RESULTS.md"
 def test_committed_results_page_is_what_the_reports_give():
     assert RESULTS.read_text() == results_page(ROOT / "reports"), (
         "docs/RESULTS.md disagrees with the committed reports: regenerate it with `mpd report paper`"
+    )
+
+
+def test_readme_results_at_a_glance_are_what_the_reports_give():
+    readme = (ROOT / "README.md").read_text()
+    assert with_glance(readme, glance(ROOT / "reports")) == readme, (
+        "README.md's results at a glance disagree with the committed reports: regenerate them with `mpd report paper`"
     )
 
 
@@ -73,7 +80,7 @@ def test_orderings_cite_the_sentence_of_their_methods():
 
 def test_check_option_fails_on_a_stale_page(tmp_path):
     def mpd_report_paper(out: Path, *extra: str) -> int:
-        cmd = [sys.executable, "-m", "mpd.cli", "report", "paper", "--out", str(out), *extra]
+        cmd = [sys.executable, "-m", "mpd.cli", "report", "paper", "--no-readme", "--out", str(out), *extra]
         return subprocess.run(cmd, capture_output=True, text=True).returncode
 
     page = tmp_path / "RESULTS.md"

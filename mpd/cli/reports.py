@@ -46,13 +46,27 @@ def _write_page(text: str, out: Path, check: bool) -> None:
 @report.command("paper")
 @click.option("--reports", "root", type=click.Path(path_type=Path), default=REPO_ROOT / "reports", show_default=True)
 @click.option("--out", type=click.Path(path_type=Path), default=REPO_ROOT / "docs" / "RESULTS.md", show_default=True)
-@click.option("--check", is_flag=True, help="exit 1 if the file differs from what the reports give; write nothing")
-def paper(root: Path, out: Path, check: bool) -> None:
+@click.option(
+    "--readme",
+    type=click.Path(path_type=Path),
+    default=REPO_ROOT / "README.md",
+    show_default=True,
+    help="the page whose results-at-a-glance block is refreshed",
+)
+@click.option("--no-readme", is_flag=True, help="leave the README alone")
+@click.option("--check", is_flag=True, help="exit 1 if a file differs from what the reports give; write nothing")
+def paper(root: Path, out: Path, readme: Path, no_readme: bool, check: bool) -> None:
     """Every number the paper states beside ours, with a verdict, and the paper's orderings with their paired
-    intervals: one page from the committed reports' results tables."""
-    from mpd.viz.results_page import results_page
+    intervals: one page from the committed reports' results tables; and the README's summary of it."""
+    from mpd.viz.results_page import glance, results_page, with_glance
 
     _write_page(results_page(root), out, check)
+    if not no_readme:
+        try:
+            text = with_glance(readme.read_text(), glance(root), str(readme))
+        except (OSError, ValueError) as e:
+            raise click.ClickException(str(e)) from None
+        _write_page(text, readme, check)
 
 
 @report.command("index")

@@ -44,7 +44,7 @@ from mpd.schema import file_sha256
 BUNDLED = SHIPPED_BUNDLED
 ENV = SHIPPED_ENV
 LOCK_FORMAT = "mpd-shipped-prior"
-MAX_BYTES = 10 * 1024 * 1024  # the priors issue: <= 5 MB for the 2-D tasks, <= 10 MB for the Panda ones
+MAX_BYTES = 10 * 1024 * 1024  # the size budget: <= 5 MB for the 2-D tasks, <= 10 MB for the Panda ones
 MODELS = "models"  # the sub-folder of a root that holds the checkpoints
 
 
@@ -192,6 +192,7 @@ def ship(
         "weights_dtype": ckpt["weights_dtype"],
         "wall_time_s": float(ckpt.get("wall_time_s", 0.0)),
         "resumed_from_trunk_step": ckpt.get("resumed_from_trunk_step"),
+        "execution": ckpt.get("execution"),  # None: eager throughout (mpd.models.train, compile_step)
         "cpu": meta.get("cpu") or cpu_model(),
         "device": meta.get("device"),
         "n_train": meta.get("n_train"),

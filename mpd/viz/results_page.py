@@ -186,7 +186,7 @@ def orderings_table(reports: dict[str, pd.DataFrame], root: Path) -> tuple[str, 
             verdict = ordering_verdict(e, o.higher)
             kind = _kind(verdict)
             counts[kind] = counts.get(kind, 0) + 1
-            diff = f"{e.value:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]{(' ' + unit) if unit else ''}"
+            diff = _fmt_diff(e, unit)
             src = "adaptation" if o.ref is None else _ref(o.ref)
             rows.append(
                 [task, SCENES[o.scene], o.metric, claim, diff, str(e.n), _source(name, root, task), src, verdict]
@@ -254,14 +254,57 @@ def results_page(root: Path) -> str:
     return "\n".join(out)
 
 
-def write_results_page(root: Path, out: Path) -> bool:
-    """Write the page; True when its content changed."""
-    text = results_page(root)
-    old = out.read_text() if out.exists() else None
-    if old != text:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text)
-    return old != text
+GLANCE_START, GLANCE_END = "<!-- results: made by `mpd report paper` -->", "<!-- /results -->"
 
 
-__all__ = ["ORDERINGS", "PAPER_REPORTS", "Ordering", "number_verdict", "ordering_verdict", "results_page"]
+def _fmt_diff(e: stats.Estimate, unit: str) -> str:
+    return f"{e.value:+.1f} [{e.lo:+.1f}, {e.hi:+.1f}]{(' ' + unit) if unit else ''}"
+
+
+def glance(root: Path) -> str:
+    """The README's results at a glance: the verdict counts of docs/RESULTS.md and the paper's adaptation claim per
+    task (fraction valid with the extra objects, MPD > Dprior+Cost > Dprior, paired intervals)."""
+    reports = _reports(root)
+    _, n_counts = numbers_table(reports, root)
+    _, o_counts = orderings_table(reports, root)
+    rows = []
+    for task, name in _ordering_tasks(reports, ORDERINGS[1]):
+        cells = []
+        for o in ORDERINGS[:2]:  # MPD > Dprior+Cost, Dprior+Cost > Dprior
+            p = _paired(reports[name], o, task)
+            e = None if p is None else scaled(p.difference, 100.0)
+            cells.append("–" if e is None else f"{_fmt_diff(e, 'pp')}: {_kind(ordering_verdict(e, o.higher))}")
+        rows.append([task, *cells, f"`{_priors(root, name, task)}`"])
+    table = markdown_table(["task", "MPD − Dprior+Cost", "Dprior+Cost − Dprior", "priors"], rows, ["l", "r", "r", "l"])
+    return "\n".join(
+        [
+            GLANCE_START,
+            f"**{_count_line(n_counts, 'The paper’s numbers')}. {_count_line(o_counts, 'Its orderings')}.**",
+            "",
+            "The paper's adaptation claim, fraction valid with the extra objects, MPD > Dprior+Cost > Dprior (paired "
+            "difference on the same contexts, mean [95 % interval]):",
+            "",
+            table,
+            GLANCE_END,
+        ]
+    )
+
+
+def with_glance(readme: str, block: str, path: str = "README.md") -> str:
+    """``readme`` with the text between the glance markers replaced by ``block``."""
+    if GLANCE_START not in readme or GLANCE_END not in readme:
+        raise ValueError(f"{path}: no {GLANCE_START} ... {GLANCE_END} block to fill")
+    head, rest = readme.split(GLANCE_START, 1)
+    return head + block + rest.split(GLANCE_END, 1)[1]
+
+
+__all__ = [
+    "ORDERINGS",
+    "PAPER_REPORTS",
+    "Ordering",
+    "glance",
+    "number_verdict",
+    "ordering_verdict",
+    "results_page",
+    "with_glance",
+]
