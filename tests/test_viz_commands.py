@@ -58,3 +58,24 @@ def test_report_command_by_run_id(tmp_path, monkeypatch):
     assert (run / "report" / "index.md").exists()
     res = CliRunner().invoke(report, ["no-such-run"])
     assert res.exit_code != 0 and "no run found" in res.output
+
+
+def test_mpd_report_group_defaults_to_a_run(tmp_path, monkeypatch):
+    """`mpd report RUN` (options before or after RUN) is `mpd report run RUN`; `paper` and `index` are pages."""
+    from test_report import make_run
+
+    from mpd.cli.reports import report as group
+
+    monkeypatch.setenv("MPD_RUNS", str(tmp_path))
+    run = make_run(tmp_path, n_ctx=2, histories=False, small=True)
+    df = pd.read_parquet(run / "results.parquet")
+    df[(df.rotation_deg == 0) & (df.n_samples == 100) & (df.parametrization == "bspline")].to_parquet(
+        run / "results.parquet", index=False
+    )
+    for args in ([run.name, "--no-recordings"], ["--no-recordings", run.name], ["run", run.name, "--no-recordings"]):
+        res = CliRunner().invoke(group, args)
+        assert res.exit_code == 0, (args, res.output)
+        assert f"report: {run / 'report' / 'index.md'}" in res.output
+    assert not list((run / "report" / "figures").glob("*.pdf"))
+    res = CliRunner().invoke(group, ["--help"])
+    assert res.exit_code == 0 and "paper" in res.output and "index" in res.output
