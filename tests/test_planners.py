@@ -152,6 +152,8 @@ def _plan_cli(*args):
         (["--planner", "gp-cost", "--start", "1.5,0.0", "--goal", "0.5,0.5"], "joint 0 = 1.5 is outside its limits"),
         (["--planner", "gp-cost", "--start", "-0.37,-0.12", "--goal", "0.5,0.5"], "in collision with the environment"),
         (["--planner", "gp-cost", "--start", "-0.2,-0.9"], "give both a start and a goal"),
+        (["--planner", "gp-cost", "--start", "nan,0", "--goal", "0.5,0.5"], "--start: entry 0 is nan (not a finite"),
+        (["--planner", "mpd", "--model", "ffff"], "--model: no diffusion model with the bspline parametrization"),
     ],
 )
 def test_plan_cli_rejects_bad_input_before_any_work(tmp_path, args, expect):
@@ -385,3 +387,14 @@ def test_cuda_plan_with_a_model_loaded_on_the_cpu(task_name, method):
     ref = make_planner(method, task, model=model, device="cpu").plan(context_of(task), 8, seed=0)
     assert next(model.network.parameters()).device.type == "cpu"
     assert res.free.shape == ref.free.shape and torch.isfinite(torch.as_tensor(res.free)).all()
+
+
+def test_cli_names_a_missing_run_in_one_line(tmp_path):
+    env = {**__import__("os").environ, "MPD_RUNS": str(tmp_path)}
+    r = subprocess.run(
+        [sys.executable, "-m", "mpd.cli", "runs", "compare", "nosuchrun", "other"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert r.returncode == 2 and r.stderr.strip() == f"error: no run found for nosuchrun in {tmp_path}"

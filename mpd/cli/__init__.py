@@ -54,6 +54,9 @@ def main() -> None:
     except ConfigError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
+    except FileNotFoundError as e:  # a run, model or file named on the command line that does not exist
+        click.echo(f"error: {e.args[-1] if e.args else e}", err=True)
+        sys.exit(2)
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)
