@@ -81,7 +81,7 @@ class AuthorsGridSDF:
 
     ``n = ceil(extent / cell)`` nodes per axis at ``linspace(lo, hi, n)`` (spacing extent / (n - 1)) hold the exact SDF;
     a point reads node ``clamp(round((x - lo) / extent * n), 0, n - 1)``, which in the upper half of each axis is one
-    node beyond the nearest (``../shared/reference/README.md``, "SDF grid"). Points outside the box read the boundary
+    node beyond the nearest (``docs/PAPER_VS_CODE.md``, "SDF grid"). Points outside the box read the boundary
     node. Value only.
     """
 

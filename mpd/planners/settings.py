@@ -2,7 +2,7 @@
 
 ``official`` (the default) follows the authors' inference configs, which produced the published results;
 ``paper`` follows the paper's text (Algorithm 2, appendix B). Where they differ
-(``../shared/reference/README.md``, "Paper vs code" 1-3, 6, 17):
+(``docs/PAPER_VS_CODE.md``, "Paper vs code" 1-3, 6, 17):
 
 - guided DDIM steps: official ceil(task guide_fraction x 15) = 5 or 3; paper the last i_cost = 3.
 - DDIM eta: official 0.5 (stochastic); paper 0 (deterministic).
