@@ -410,6 +410,18 @@ class DiffusionModel(nn.Module):
         ``goal_row_weight`` = w: the squared errors are averaged over rows with weight w for the last row (the free
         final configuration of an end-effector-goal task) and 1 for the others, i.e. divided by the weights' sum;
         w = 1 is the plain mean."""
+        t, noise = self.loss_draws(x0, generator, t_grid, t_grid_fraction)
+        return self.loss_of_draws(x0, context, t, noise, weighting, min_snr_gamma, goal_row_weight)
+
+    def loss_draws(
+        self,
+        x0: torch.Tensor,
+        generator: torch.Generator | None = None,
+        t_grid: torch.Tensor | None = None,
+        t_grid_fraction: float = 0.0,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The random part of :meth:`loss`: each sample's step ``t`` and noise, drawn from ``generator`` in the
+        loss's order (a compiled training step draws them eagerly and compiles :meth:`loss_of_draws`)."""
         b = x0.shape[0]
         t = randint(self.n_diffusion_steps, (b,), generator, x0.device)
         noise = randn(tuple(x0.shape), generator, x0.device, x0.dtype)
@@ -418,6 +430,19 @@ class DiffusionModel(nn.Module):
             pick = grid[randint(len(grid), (b,), generator, x0.device)]
             u = torch.rand((b,), generator=generator, device=generator.device if generator is not None else "cpu")
             t = torch.where(u.to(x0.device) < t_grid_fraction, pick, t)
+        return t, noise
+
+    def loss_of_draws(
+        self,
+        x0: torch.Tensor,
+        context: Mapping[str, torch.Tensor],
+        t: torch.Tensor,
+        noise: torch.Tensor,
+        weighting: Literal["uniform", "min_snr"] = "uniform",
+        min_snr_gamma: float = 5.0,
+        goal_row_weight: float = 1.0,
+    ) -> torch.Tensor:
+        """The deterministic part of :meth:`loss`, given its draws (:meth:`loss_draws`)."""
         if weighting not in ("uniform", "min_snr"):
             raise ValueError(f"unknown loss weighting {weighting!r} (known: uniform, min_snr)")
         pred = self(q_sample(x0, t, noise, self.schedule), t, context)

@@ -43,6 +43,7 @@ from mpd.models.checkpoint import (
     read_checkpoint,
     save_atomic,
 )
+from mpd.models.compiled_step import CompiledStep, compile_by_default, compile_supported
 from mpd.models.context import EE_GOAL, UNNORMALIZED_KEYS
 from mpd.models.cuda_graph import GraphedStep, graph_supported
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
@@ -325,6 +326,7 @@ def train_model(
     stop_after: int | None = None,
     shipped: bool = True,
     cuda_graph: bool | None = None,
+    compile_step: bool | None = None,
 ) -> Path:
     """Train (or find) the model of this identity; return the path of its ``model.pt``.
 
@@ -335,6 +337,12 @@ def train_model(
     shipped priors (:mod:`mpd.models.shipped`, verified by hash) when one has this identity; False trains it.
     ``cuda_graph``: capture the training step in a CUDA graph (:mod:`mpd.models.cuda_graph`; an execution mode, not
     part of the identity); None: where supported (a diffusion model on CUDA, unless ``MPD_CUDA_GRAPH=0``).
+    ``compile_step``: the CPU step with the loss compiled by torch.compile (:mod:`mpd.models.compiled_step`, also an
+    execution mode); None: a diffusion training on a CPU of at least ``compiled_step.MIN_STEPS`` steps in this call
+    (``MPD_TRAIN_COMPILE=0`` never, ``=1`` whatever the length), except the retraining of a shipped prior that was
+    trained eagerly (``shipped=False``), which stays eager so that it reproduces the shipped weights bit for bit.
+    The modes a checkpoint's steps ran in are recorded as ``execution`` (``[[first step, mode], ...]``) wherever a
+    mode other than eager was used.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r} (known: {', '.join(KINDS)})")
@@ -457,7 +465,17 @@ def train_model(
         cuda_graph = graph_supported(kind, device)
     elif cuda_graph and not (kind == "diffusion" and device.type == "cuda"):
         raise ValueError(f"cuda_graph=True: only a diffusion training on CUDA is captured, not {kind} on {device}")
-    graphed = None
+    if compile_step is None:
+        compile_step = not cuda_graph and compile_by_default(kind, device, end - step)
+        if compile_step and not shipped and _shipped_eager(arrays.task_name, kind, arrays.parametrization, identity):
+            compile_step = False  # a shipped prior retrained: its own (eager) execution, for the same bits
+    elif compile_step and not compile_supported(kind, device):
+        raise ValueError(
+            f"compile_step=True: only a diffusion training on a CPU with a C++ compiler, not {kind} on {device}"
+        )
+    graphed = compiled = None
+    if compile_step:
+        compiled = CompiledStep(net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
     if cuda_graph:
         graphed = GraphedStep(
             net, ema, opt,
@@ -465,12 +483,22 @@ def train_model(
             gen, ts, loss_kwargs, arithmetic == "bf16", running,
         )  # fmt: skip
         record["cuda_graph"] = True  # recorded where used (the records of the eager trainings are as before)
+    mode = "cuda_graph" if graphed is not None else "compiled" if compiled is not None else "eager"
+    execution = [list(e) for e in state.get("execution", [[0, "eager"]])] if state is not None else [[step, mode]]
+    if execution[-1][1] != mode:
+        execution.append([step, mode])
+    if any(m != "eager" for _, m in execution):  # recorded where used (the eager trainings' records are as before)
+        record["execution"] = execution
     t0 = time.perf_counter()
     net.train()
     with _deferred_sigint() as interrupted:
         while step < end:
             if graphed is not None:  # the same step, captured: batch, loss, clipping, AdamW, EMA, running sum
                 graphed(step, learning_rate(ts, step))
+                step += 1
+            elif compiled is not None:  # the same step, its loss compiled (draws, clipping, AdamW, EMA as eager)
+                xb, cb = train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device))
+                running += compiled(xb, cb, step, learning_rate(ts, step))
                 step += 1
             else:
                 idx = torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)
@@ -552,6 +580,17 @@ def train_model(
     save_atomic(final, final_path)
     last_path.unlink(missing_ok=True)  # the final file supersedes it (a longer run is another identity)
     return final_path
+
+
+def _shipped_eager(task_name: str, kind: str, parametrization: str, identity: str) -> bool:
+    """Whether a shipped prior of this identity exists and was trained eagerly throughout (its lock's ``execution``)."""
+    from mpd.models import shipped as shipped_priors
+
+    path = shipped_priors.find(task_name, kind, parametrization, identity)
+    if path is None:
+        return False
+    lock, _ = shipped_priors.verify(path)
+    return all(m == "eager" for _, m in (lock or {}).get("execution") or [[0, "eager"]])
 
 
 def list_models(task_name: str | None = None, cache: str | Path | None = None) -> list[dict[str, Any]]:

@@ -1,0 +1,105 @@
+"""A diffusion training step on a CPU with the loss's forward and backward compiled by torch.compile (inductor).
+
+The eager step of the priors' networks spends about a third of its time outside the convolutions, in a few hundred
+small kernels (Mish and GroupNorm forward and backward, FiLM, residual sums, casts) each of which reads and writes
+the whole activation; inductor fuses them into a few C++ loops, and the convolutions stay oneDNN's. Only the loss's
+deterministic part is compiled (:meth:`DiffusionModel.loss_of_draws`): the batch, the diffusion steps and the
+noise are drawn eagerly from the training's generator in the eager loop's order, and the gradient clipping, fused
+AdamW and the EMA are the eager loop's (the EMA's copies and lerps as :func:`torch._foreach_copy_` /
+:func:`torch._foreach_lerp_`, with the weights of :func:`mpd.models.cuda_graph.ema_weight`). So it computes what the
+eager step computes, in the same arithmetic (fp32, or bf16 autocast where the training's precision asks for it),
+up to float rounding inside the fused kernels: an execution mode, not part of a model's identity, recorded in the
+checkpoint and the meta (``execution``).
+
+Where: a diffusion training on a CPU with a C++ compiler, for runs of at least :data:`MIN_STEPS` steps in one call
+(compiling costs 10-200 s on a 2-core CPU, a few hundred steps' worth). ``MPD_TRAIN_COMPILE=0`` turns it off,
+``MPD_TRAIN_COMPILE=1`` turns it on for any run length; ``train_model(compile_step=...)`` decides per call.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from collections.abc import Mapping
+
+import torch
+from torch import nn
+
+from mpd.models.cuda_graph import ema_weight
+from mpd.tasks.spec import TrainingSpec
+
+ENV = "MPD_TRAIN_COMPILE"
+MIN_STEPS = 2000  # steps in one call from which the compiled step is the default (MPD_TRAIN_COMPILE unset)
+
+
+def cxx_available() -> bool:
+    """Whether inductor finds a C++ compiler (``CXX``, else g++ or c++ on the PATH)."""
+    return any(shutil.which(c) for c in (os.environ.get("CXX", ""), "g++", "c++") if c)
+
+
+def compile_supported(kind: str, device: torch.device) -> bool:
+    """Whether a training of ``kind`` on ``device`` can run the compiled step at all."""
+    return kind == "diffusion" and torch.device(device).type == "cpu" and cxx_available()
+
+
+def compile_by_default(kind: str, device: torch.device, n_steps: int) -> bool:
+    """Whether a call that trains ``n_steps`` steps runs the compiled step when not told (see the module docstring)."""
+    env = os.environ.get(ENV, "")
+    if env == "0" or not compile_supported(kind, device):
+        return False
+    return env == "1" or n_steps >= MIN_STEPS
+
+
+class CompiledStep:
+    """``step(xb, cb, s, lr)`` runs (0-based) training step ``s`` on the batch ``(xb, cb)`` and returns the detached
+    loss: draws, compiled loss forward and backward, clipping, AdamW at ``lr``, EMA. Should the compilation fail (no
+    working C++ compiler), the step says so once and goes on eagerly with the same draws (``self.compiled`` False)."""
+
+    def __init__(
+        self,
+        net: nn.Module,
+        ema: nn.Module,
+        opt: torch.optim.Optimizer,
+        gen: torch.Generator,
+        ts: TrainingSpec,
+        loss_kwargs: Mapping,
+        bf16: bool,
+    ):
+        self.net, self.opt, self.gen, self.ts, self.bf16 = net, opt, gen, ts, bf16
+        kw = dict(loss_kwargs)
+        self.draw_kwargs = {"t_grid": kw.pop("t_grid", None), "t_grid_fraction": kw.pop("t_grid_fraction", 0.0)}
+        self.loss_kwargs = kw
+        self.params = list(net.parameters())
+        self.ema_params = list(ema.parameters())
+        self.compiled = True
+        self._loss_fn = torch.compile(self._loss, dynamic=False)
+
+    def _loss(self, x0: torch.Tensor, context: dict[str, torch.Tensor], t: torch.Tensor, noise: torch.Tensor):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            return self.net.loss_of_draws(x0, context, t, noise, **self.loss_kwargs)
+
+    def __call__(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int, lr: float) -> torch.Tensor:
+        t, noise = self.net.loss_draws(xb, self.gen, **self.draw_kwargs)
+        if self.compiled:
+            try:
+                loss = self._loss_fn(xb, cb, t, noise)
+            except torch._dynamo.exc.BackendCompilerFailed as e:
+                print(f"mpd: the compiled training step failed to compile ({e}); training eagerly", file=sys.stderr)
+                self.compiled = False
+        if not self.compiled:
+            loss = self._loss(xb, cb, t, noise)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.ts.grad_clip_norm > 0:
+            nn.utils.clip_grad_norm_(self.params, self.ts.grad_clip_norm)
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        self.opt.step()
+        w = ema_weight(self.ts, step)
+        with torch.no_grad():
+            if w == 1.0:
+                torch._foreach_copy_(self.ema_params, self.params)
+            elif w > 0.0:
+                torch._foreach_lerp_(self.ema_params, self.params, w)
+        return loss.detach()
