@@ -192,6 +192,57 @@ def _ema_update(ema: nn.Module, model: nn.Module, decay: float, copy_weights: bo
 
 
 @torch.no_grad()
+def training_loss_kwargs(kind: str, ts: TrainingSpec, device: torch.device) -> dict[str, Any]:
+    """The keywords of ``net.loss`` a training of ``ts`` passes (the diffusion loss's options; none for the CVAE)."""
+    if kind != "diffusion":
+        return {}
+    kw: dict[str, Any] = {
+        "weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma, "goal_row_weight": ts.goal_row_weight,
+    }  # fmt: skip
+    if ts.t_sampling == "sampler":
+        kw.update(t_grid=sampler_grid().to(device), t_grid_fraction=ts.t_grid_fraction)
+    return kw
+
+
+class EagerStep:
+    """``step(xb, cb, s, lr)`` runs (0-based) training step ``s`` on the batch ``(xb, cb)`` eagerly and returns the
+    detached loss: loss (under bf16 autocast when ``bf16``), backward, gradient clipping, AdamW at ``lr``, EMA. The
+    reference of the other execution modes (:class:`mpd.models.compiled_step.CompiledStep`, the CUDA graph)."""
+
+    def __init__(
+        self,
+        kind: str,
+        net: nn.Module,
+        ema: nn.Module,
+        opt: torch.optim.Optimizer,
+        gen: torch.Generator,
+        ts: TrainingSpec,
+        loss_kwargs: dict[str, Any],
+        bf16: bool,
+    ):
+        self.kind, self.net, self.ema, self.opt, self.gen, self.ts = kind, net, ema, opt, gen, ts
+        self.loss_kwargs = loss_kwargs
+        device = next(net.parameters()).device
+        self.autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
+
+    def __call__(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int, lr: float) -> torch.Tensor:
+        ts, net, opt = self.ts, self.net, self.opt
+        if self.kind == "cvae" and ts.kl_warmup_steps > 0:
+            self.loss_kwargs["kl_scale"] = min(1.0, step / ts.kl_warmup_steps)
+        with self.autocast:
+            loss = net.loss(xb, cb, self.gen, **self.loss_kwargs)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if ts.grad_clip_norm > 0:
+            nn.utils.clip_grad_norm_(net.parameters(), ts.grad_clip_norm)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        opt.step()
+        if (step + 1) % ts.ema_every == 0:
+            _ema_update(self.ema, net, ts.ema_decay, copy_weights=step + 1 < ts.ema_start)
+        return loss.detach()
+
+
 def _val_loss(net: nn.Module, data: _Data, batch_size: int, seed: int) -> float:
     """Mean loss over the validation samples, with the same t and noise every time (a seeded generator)."""
     g = torch.Generator(device=data.x.device).manual_seed(seed + 1)
@@ -447,20 +498,13 @@ def train_model(
         total=ts.steps, initial=step, unit="step", disable=not progress, dynamic_ncols=True,
         desc=f"{kind}-{arrays.parametrization} {arrays.task_name} [{identity[:8]}]", mininterval=1.0,
     )  # fmt: skip
-    loss_kwargs = {}
-    if kind == "diffusion":
-        loss_kwargs = {
-            "weighting": ts.loss_weighting, "min_snr_gamma": ts.min_snr_gamma, "goal_row_weight": ts.goal_row_weight,
-        }  # fmt: skip
-        if ts.t_sampling == "sampler":
-            loss_kwargs.update(t_grid=sampler_grid().to(device), t_grid_fraction=ts.t_grid_fraction)
+    loss_kwargs = training_loss_kwargs(kind, ts, device)
     arithmetic = training_arithmetic(ts.precision, device)
     if arithmetic != ts.precision:
         tqdm.write(
             f"{kind} {arrays.task_name}: precision bf16 trains in fp32 arithmetic here: {device} has no native bf16 "
             "(AVX512_BF16 / AMX); emulated bf16 is ~30x slower (MPD_BF16=emulate forces it)"
         )
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=arithmetic == "bf16")
     if cuda_graph is None:
         cuda_graph = graph_supported(kind, device)
     elif cuda_graph and not (kind == "diffusion" and device.type == "cuda"):
@@ -476,6 +520,7 @@ def train_model(
     graphed = compiled = None
     if compile_step:
         compiled = CompiledStep(net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
+    stepper = compiled or EagerStep(kind, net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
     if cuda_graph:
         graphed = GraphedStep(
             net, ema, opt,
@@ -496,28 +541,10 @@ def train_model(
             if graphed is not None:  # the same step, captured: batch, loss, clipping, AdamW, EMA, running sum
                 graphed(step, learning_rate(ts, step))
                 step += 1
-            elif compiled is not None:  # the same step, its loss compiled (draws, clipping, AdamW, EMA as eager)
+            else:  # eager, or its loss compiled (the same draws, clipping, AdamW and EMA)
                 xb, cb = train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device))
-                running += compiled(xb, cb, step, learning_rate(ts, step))
+                running += stepper(xb, cb, step, learning_rate(ts, step))
                 step += 1
-            else:
-                idx = torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)
-                xb, cb = train.batch(idx)
-                if kind == "cvae" and ts.kl_warmup_steps > 0:
-                    loss_kwargs["kl_scale"] = min(1.0, step / ts.kl_warmup_steps)
-                with autocast:
-                    loss = net.loss(xb, cb, gen, **loss_kwargs)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if ts.grad_clip_norm > 0:
-                    nn.utils.clip_grad_norm_(net.parameters(), ts.grad_clip_norm)
-                for g in opt.param_groups:
-                    g["lr"] = learning_rate(ts, step)
-                opt.step()
-                step += 1
-                if step % ts.ema_every == 0:
-                    _ema_update(ema, net, ts.ema_decay, copy_weights=step < ts.ema_start)
-                running += loss.detach()
             running_n += 1
             if step % ts.val_every == 0 or step == ts.steps:
                 last_train = float(running) / running_n
@@ -659,6 +686,6 @@ def steps_per_second(net: nn.Module, x: torch.Tensor, context: dict[str, torch.T
 
 
 __all__ = [
-    "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity", "network_identity",
-    "stable_steps", "steps_per_second", "train_model", "trunk_identity",
+    "EagerStep", "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity",
+    "network_identity", "stable_steps", "steps_per_second", "train_model", "training_loss_kwargs", "trunk_identity",
 ]  # fmt: skip
