@@ -82,9 +82,9 @@ def reference(task, param, env, preset: str, name: str, free, q_start, q_goal, e
         e, T = 0.03, d.duration
         terms = [(d.q, r.q_min + e, r.q_max - e)]
         if r.dq_max is not None:
-            terms.append((d.dq_ds, -r.dq_max * T + e, r.dq_max * T - e))
+            terms.append((d.dq_ds, -(r.dq_max - e) * T, (r.dq_max - e) * T))  # margin in rad/s, then to phase
         if r.ddq_max is not None:
-            terms.append((d.ddq_ds2, -r.ddq_max * T**2 + e, r.ddq_max * T**2 - e))
+            terms.append((d.ddq_ds2, -(r.ddq_max - e) * T**2, (r.ddq_max - e) * T**2))
         c = sum(0.5 * (torch.relu(x - hi) + torch.relu(lo - x)).pow(2).sum(-1) for x, lo, hi in terms)
         return integral(c)
     if name in ("collision", "self_collision"):
@@ -710,3 +710,31 @@ def test_fused_phase_pass_is_the_torch_path(key, dtype, preset, kind):
     torch.testing.assert_close(with_pass.grad, without.grad, **tol)
     with pytest.raises(ValueError, match="two norm penalties on dense field 1"):
         phase_kernel.phase_pass(dense.stacked, costs[0].weights(inp), [(costs[0].penalty(inp), 1.0)] * 2)
+
+
+def test_joint_limit_margin_is_in_time_units():
+    """The authors' joint-limit cost takes eps = 0.03 off the velocity (rad/s) and acceleration (rad/s^2) limits in
+    time units, then scales them to the phase (x T, x T^2): a velocity 0.02 rad/s under the limit is penalised (with
+    the margin in phase units it would be 0.003 rad/s and not penalised), one 0.04 rad/s under it is not; the same
+    for accelerations; the fused pass (CostFunction) sees the same bounds."""
+    from mpd.costs.joint_limits import MARGIN
+    from mpd.trajectory.base import Dense
+
+    task = load_task("EnvWarehouse-RobotPanda")
+    r, T, n = task.robot, 10.0, 16
+    cost = COSTS["joint_limits"](task, "official")
+    mid = ((r.q_min + r.q_max) / 2).to(F64)
+    for which, lim, scale in (("dq", r.dq_max, T), ("ddq", r.ddq_max, T**2)):
+        for under, penalised in ((0.02, True), (0.04, False)):
+            x = torch.zeros(1, n, task.dof, dtype=F64)
+            x[0, n // 2, 0] = (lim[0] - under) * scale  # joint 1 at one point, in phase units
+            q = mid.expand(1, n, -1).clone()
+            dense = Dense(
+                q, x if which == "dq" else torch.zeros_like(x), x if which == "ddq" else torch.zeros_like(x), T
+            )
+            term = cost(CostInput(dense, task, task.env()))
+            g = term.g_dq if which == "dq" else term.g_ddq
+            expected = (MARGIN - under) * scale if penalised else 0.0
+            w = cost.weights(CostInput(dense, task, task.env()))[n // 2]
+            torch.testing.assert_close(g[0, n // 2, 0], torch.tensor(expected, dtype=F64) * w)
+            assert (float(term.value[0]) > 0) == penalised

@@ -1,9 +1,12 @@
 """Joint-limit cost: 1/2 |violation|^2 of position, velocity and acceleration limits, each with margin eps.
 
-In phase space the time limits become q'_max = qdot_max T and q''_max = qddot_max T^2 (q' = qdot T). A value
-x is penalised outside [lo + eps, hi - eps] by the distance to that interval, v = x - clamp(x, lo + eps, hi -
-eps), per point C = 1/2 (|v_q|^2 + |v_q'|^2 + |v_q''|^2), integrated over the phase. The velocity and
-acceleration terms exist only where the robot defines those limits (the point mass does not).
+The margin eps is taken off each limit in its own time units, as the authors' cost does: [q_min + eps, q_max - eps]
+(rad), |qdot| <= qdot_max - eps (rad/s), |qddot| <= qddot_max - eps (rad/s^2). The velocity and acceleration
+bounds are then scaled to the phase (q' = qdot T, q'' = qddot T^2): q'_max = (qdot_max - eps) T and q''_max =
+(qddot_max - eps) T^2, so the margin is eps T and eps T^2 in phase units (not eps: that would be 10x / 100x smaller
+in time units at T = 10 s). A value x is penalised outside its interval by the distance to it, v = x - clamp(x, lo,
+hi), per point C = 1/2 (|v_q|^2 + |v_q'|^2 + |v_q''|^2), integrated over the phase. The velocity and acceleration
+terms exist only where the robot defines those limits (the point mass does not).
 
 Both presets use this form (the paper: 1/2 |.|^2 with margin eps). The authors' code reports 0.5 |v|_2 as the
 value but steps along the squared form's gradient v; here the value is 1/2 |v|^2 so that value and gradient
@@ -35,12 +38,13 @@ class JointLimitsCost(Cost):
         if key not in self._consts:
             r, e = self.robot, self.margin
             lims: dict[str, torch.Tensor] = {"q": torch.stack([r.q_min + e, r.q_max - e])}
+            # the margin comes off in time units (rad/s, rad/s^2), then the bound is scaled to the phase
             if r.dq_max is not None:
-                m = r.dq_max * duration
-                lims["dq"] = torch.stack([-m + e, m - e])
+                m = (r.dq_max - e) * duration
+                lims["dq"] = torch.stack([-m, m])
             if r.ddq_max is not None:
-                m = r.ddq_max * duration**2
-                lims["ddq"] = torch.stack([-m + e, m - e])
+                m = (r.ddq_max - e) * duration**2
+                lims["ddq"] = torch.stack([-m, m])
             self._consts[key] = {k: v.to(dtype=x.dtype, device=x.device) for k, v in lims.items()}
         c = self._consts[key]
         return [None if k not in c else (c[k][0], c[k][1]) for k in ("q", "dq", "ddq")]
