@@ -520,6 +520,11 @@ def train_model(
     graphed = compiled = None
     if compile_step:
         compiled = CompiledStep(net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
+        if progress:
+            tqdm.write(
+                f"{kind} {arrays.task_name}: the training step's loss is compiled on the first step (torch.compile, "
+                "1-8 min on a busy 2-core CPU, less from inductor's cache); MPD_TRAIN_COMPILE=0 trains eagerly"
+            )
     stepper = compiled or EagerStep(kind, net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
     if cuda_graph:
         graphed = GraphedStep(
