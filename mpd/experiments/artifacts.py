@@ -382,15 +382,25 @@ def _steps_last(training: tuple) -> tuple:
     return (repr(sorted((k, v) for k, v in d.items() if k != "steps")), d.get("steps", 0))
 
 
-def _train_job(job, progress: bool, threads: int | None) -> Path:
+# Intra-op threads of every training a spec run makes, whatever the executor (this process, a worker process, a Ray
+# task): a CPU training's bits depend on the thread count (the reductions' split), so one count for all keeps "a
+# model's identity decides its weights" true across executors on one CPU type (tests/test_ray_cluster.py).
+TRAIN_THREADS = 1
+
+
+def _train_job(job, progress: bool, threads: int | None = TRAIN_THREADS) -> Path:
     import torch
 
     from mpd.models.train import train_model
 
+    before = torch.get_num_threads()
     if threads:
         torch.set_num_threads(threads)
-    _, kind, _, arrays, model_spec, train_spec, _ = job
-    return Path(train_model(arrays, kind, model_spec, train_spec, seed=0, progress=progress))
+    try:
+        _, kind, _, arrays, model_spec, train_spec, _ = job
+        return Path(train_model(arrays, kind, model_spec, train_spec, seed=0, progress=progress))
+    finally:
+        torch.set_num_threads(before)
 
 
 def _train_chain(chain: list, progress: bool, threads: int | None) -> list[Path]:
@@ -425,18 +435,18 @@ def train_models(
         chains.setdefault(_chain_key(j), []).append(j)
     if executor == "ray" and chains:
         _train_ray(list(chains.values()))
-        return [_train_job(j, progress, None) for j in jobs]  # all in the cache now: returns at once
+        return [_train_job(j, progress) for j in jobs]  # all in the cache now: returns at once
     n = min(max(1, workers), len(chains))
     if n <= 1:
-        paths = {id(j): _train_job(j, progress, None) for j in sorted(jobs, key=lambda j: j[5].steps)}
+        paths = {id(j): _train_job(j, progress) for j in sorted(jobs, key=lambda j: j[5].steps)}
         return [paths[id(j)] for j in jobs]
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
-        futures = [(chain, pool.submit(_train_chain, chain, progress, 1)) for chain in chains.values()]
+        futures = [(chain, pool.submit(_train_chain, chain, progress, TRAIN_THREADS)) for chain in chains.values()]
         done = {id(j): path for chain, f in futures for j, path in zip(chain, f.result())}
-    return [done[id(j)] if id(j) in done else _train_job(j, progress, None) for j in jobs]
+    return [done[id(j)] if id(j) in done else _train_job(j, progress) for j in jobs]
 
 
 def _ray_chain(chain: list) -> list[dict]:
@@ -447,7 +457,7 @@ def _ray_chain(chain: list) -> list[dict]:
 
     distributed.single_threaded()
     out = []
-    for job, path in zip(chain, _train_chain(chain, False, 1)):
+    for job, path in zip(chain, _train_chain(chain, False, TRAIN_THREADS)):
         meta = json.loads((path.parent / "meta.json").read_text())
         meta["node"] = distributed.node_id()
         # recorded here too: on a shared cache the driver finds this very file and writes nothing

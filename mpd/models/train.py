@@ -539,6 +539,10 @@ def train_model(
         execution.append([step, mode])
     if any(m != "eager" for _, m in execution):  # recorded where used (the eager trainings' records are as before)
         record["execution"] = execution
+    if device.type == "cpu":
+        # a CPU training's bits depend on its intra-op thread count too (the reductions' split): the same identity
+        # gives the same weights on the same CPU type with the same count (mpd.experiments.artifacts trains with 1)
+        record["cpu_threads"] = torch.get_num_threads()
     t0 = time.perf_counter()
     net.train()
     with _deferred_sigint() as interrupted:
