@@ -27,7 +27,7 @@ import torch
 from cpu_peak import peak_gflops
 from gpu_check import plan_context, random_model  # benchmarks/: the random-weight model and context of the GPU check
 
-from mpd.device import native_bf16
+from mpd.device import native_bf16, network_precision
 from mpd.planners import make_planner
 from mpd.tasks import load_task
 from mpd.tasks.task import Task
@@ -101,6 +101,40 @@ def test_plan(benchmark, which, method, precision, network):
         peak_fp32_gflop_per_s=round(peak["fp32"], 1),
         peak_bf16_gflop_per_s=round(peak["bf16"], 1),
         fraction_of_peak=round(rate / peak[precision], 3),
+    )
+
+
+@pytest.mark.parametrize("method", ["mpd", "prior"])
+@pytest.mark.parametrize("which", list(TASKS))
+def test_plan_api_defaults(benchmark, which, method):
+    """The same plans with the settings a user of the Python API gets without asking (``mpd.api.FAST_SETTINGS``:
+    the compiled network, bf16 where the CPU has it): the first plan (compilation included, a fresh dynamo cache)
+    and the steady state, the ratios of the speed acceptance against the authors' code."""
+    import time
+
+    from mpd.api import FAST_SETTINGS
+
+    task = authors_task(TASKS[which])
+    torch._dynamo.reset()
+    planner = make_planner(
+        "mpd" if method == "mpd" else "dprior",
+        task,
+        model=random_model(task, make_parametrization(task)),
+        device="cpu",
+        extra_objects=True,
+        overrides={"guide_fraction": 0.3, **FAST_SETTINGS},
+    )
+    ctx = plan_context(task, "cpu")
+    t0 = time.perf_counter()
+    planner.plan(ctx, 100, seed=0)
+    first = time.perf_counter() - t0
+    timings = []
+    benchmark.pedantic(lambda: timings.append(planner.plan(ctx, 100, seed=0).timings), rounds=7, warmup_rounds=0)
+    walls = [t["total"] for t in timings]
+    benchmark.extra_info.update(
+        first_plan_s=round(first, 3),
+        median_total_s=round(statistics.median(walls), 4),
+        network_precision=network_precision(planner.settings.network_precision, "cpu"),
     )
 
 
