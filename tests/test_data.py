@@ -494,3 +494,16 @@ def test_generated_chunk_does_not_depend_on_the_processors_maths_library(name):
         )
         shas.append(out.stdout.strip().splitlines()[-1])
     assert shas[0] == shas[1]
+
+
+def test_every_committed_dataset_lock_is_the_identity_its_definition_resolves_to():
+    """A committed lock (and the shipped digests and priors found through it) holds only while the definition, the
+    task's data sections and the robot file (hashed byte for byte, comments included) are what made it: an edit of
+    any of them, a comment in a robot file too, must not go unnoticed."""
+    from mpd.data.definition import DATASETS_DIR
+
+    locks = sorted(DATASETS_DIR.glob("*.lock.json"))
+    assert len(locks) >= 10
+    for lock_path in locks:
+        name = lock_path.name.removesuffix(".lock.json")
+        assert load_definition(name).identity == json.loads(lock_path.read_text())["identity"], name
