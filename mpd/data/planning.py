@@ -322,6 +322,7 @@ class JointSpacePlanner:
 
 
 _PLANNERS: dict[tuple, JointSpacePlanner] = {}
+_MAX_PLANNERS = 16  # scenes with obstacles given at plan time come and go: keep the most recent ones
 
 
 def plan_path(
@@ -351,6 +352,8 @@ def plan_path(
     key = (task.name, task.file_hash, env.key, cl, settings, n)
     if key not in _PLANNERS:
         checker = SphereChecker(task, clearance=cl, env=env)
+        while len(_PLANNERS) >= _MAX_PLANNERS:
+            _PLANNERS.pop(next(iter(_PLANNERS)))
         _PLANNERS[key] = JointSpacePlanner(checker, settings, n)
     r = _PLANNERS[key].plan(q_start, q_goal, problem_seed("plan_path", seed))
     return r.path if r.success else None
