@@ -152,3 +152,48 @@ def network_gflop(planner, ctx) -> float:
         with FlopCounterMode(display=False) as fc:
             net(x, 10, emb)
     return fc.get_total_flops() / 1e9
+
+
+@pytest.mark.parametrize("which", list(TASKS))
+def test_plan_time_obstacles(benchmark, which):
+    """What obstacles given at plan time cost (MPD, compiled as the API runs it): per round a new obstacle set (two
+    spheres at new places: the scene's grid of the extra set is rebuilt, ``scene_s``, then the plan) against a plan
+    with the previous round's set (nothing rebuilt) and one without obstacles."""
+    import time
+
+    import numpy as np
+
+    from mpd.api import FAST_SETTINGS
+    from mpd.envs.primitives import Primitive
+
+    task = authors_task(TASKS[which])
+    torch._dynamo.reset()
+    planner = make_planner(
+        "mpd",
+        task,
+        model=random_model(task, make_parametrization(task)),
+        device="cpu",
+        extra_objects=True,
+        overrides={"guide_fraction": 0.3, **FAST_SETTINGS},
+    )
+    base = planner.env
+    ctx = plan_context(task, "cpu")
+    planner.plan(ctx, 100, seed=0)  # compiles
+    rng = np.random.default_rng(0)
+    lo, hi = base.workspace
+    rounds = {"scene_s": [], "new_set_s": [], "same_set_s": [], "no_obstacles_s": []}
+
+    def one_round():
+        centres = rng.uniform(lo + 0.2 * (hi - lo), hi - 0.2 * (hi - lo), (2, task.dim))
+        t0 = time.perf_counter()
+        env = base.with_obstacles([Primitive("sphere", c, radius=0.05) for c in centres])
+        env.grid("extra")
+        planner.use_environment(env)
+        rounds["scene_s"].append(time.perf_counter() - t0)
+        rounds["new_set_s"].append(planner.plan(ctx, 100, seed=0).timings["total"])
+        rounds["same_set_s"].append(planner.plan(ctx, 100, seed=0).timings["total"])
+        planner.use_environment(base)
+        rounds["no_obstacles_s"].append(planner.plan(ctx, 100, seed=0).timings["total"])
+
+    benchmark.pedantic(one_round, rounds=5, warmup_rounds=0)
+    benchmark.extra_info.update({k: round(statistics.median(v), 4) for k, v in rounds.items()})
