@@ -231,7 +231,11 @@ def results_page(root: Path) -> str:
         "",
         "## The paper's numbers",
         "",
-        "Verdict: whether the paper's number lies inside our 95 % interval.",
+        "Verdict: whether the paper's number lies inside our 95 % interval. End-effector errors: each context's mean "
+        "over its valid samples of the SE(3)-log errors (the position error is the translation part of "
+        "log(T_goal T_ee⁻¹)), then the mean over contexts, which is the paper's definition; every other aggregate "
+        "(the best sample, the Euclidean position error, medians) is beside it in the report's `paper.md` "
+        "([evidence](../reports/ee-error-decomposition/README.md)).",
         "",
         numbers,
         "",
