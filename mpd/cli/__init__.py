@@ -3,6 +3,7 @@ it."""
 
 from __future__ import annotations
 
+import errno
 import importlib
 import sys
 
@@ -25,6 +26,22 @@ COMMANDS = {
     "report": ("mpd.cli.reports", "report"),
     "view": ("mpd.cli.viz", "view"),
 }
+
+
+def check_device(ctx, param, value):
+    """click callback of every --device option: a name torch knows and a device this machine has, else a usage
+    error naming it (not a traceback from deep inside training or planning)."""
+    if value is None:
+        return value
+    import torch
+
+    try:
+        dev = torch.device(value)
+    except (RuntimeError, ValueError):
+        raise click.BadParameter(f"{value!r} is not a device (cpu, cuda, cuda:1 ...)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise click.BadParameter(f"{value!r}: no CUDA device on this machine")
+    return value
 
 
 class LazyGroup(click.Group):
@@ -57,6 +74,13 @@ def main() -> None:
     except FileNotFoundError as e:  # a run, model or file named on the command line that does not exist
         click.echo(f"error: {e.args[-1] if e.args else e}", err=True)
         sys.exit(2)
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES):
+            raise
+        # a full disk (or a quota, a read-only or forbidden folder): what was written before is kept (writes are
+        # atomic), a rerun resumes
+        click.echo(f"error: {e.filename or ''}: {e.strerror}", err=True)
+        sys.exit(1)
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)

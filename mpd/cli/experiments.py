@@ -7,6 +7,7 @@ import sys
 
 import click
 
+from mpd.cli import check_device
 from mpd.schema import ConfigError
 
 
@@ -33,7 +34,11 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
 @click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True)
 @click.option("--address", default=None, help="Ray cluster address (with --executor ray); default: a local Ray")
 @click.option(
-    "--workers", type=int, default=1, show_default=True, help="parallel processes (local) or CPUs (local Ray)"
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="parallel processes (local) or CPUs (local Ray)",
 )
 @click.option("--dry-run", is_flag=True, help="print the cells, what would be generated or trained, and the work")
 @click.option("--fresh", is_flag=True, help="discard this spec's previous results at this commit and start over")
@@ -43,7 +48,9 @@ def _parse_only(items: tuple[str, ...], source: str) -> dict[str, list]:
     default=None,
     help="where the run lives (default: runs/<spec>-<hash>-<commit>)",
 )
-@click.option("--device", default=None, help="cpu, cuda, cuda:1 ... (default: CUDA when present)")
+@click.option(
+    "--device", default=None, callback=check_device, help="cpu, cuda, cuda:1 ... (default: CUDA when present)"
+)
 @click.option("--report/--no-report", default=False, help="write the report and the Rerun recording at the end")
 @click.option("--mlflow", is_flag=True, help="also log the run to the local MLflow store (needs the mlflow extra)")
 @click.option(

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from mpd.cli import check_device
+
 
 @click.command("train")
 @click.option("--task", "task_name", required=True, help="task name or task file")
@@ -18,10 +20,12 @@ import click
     default=None,
     help="dataset name or definition file (default: <task>-paper if generated, else <task>-small)",
 )
-@click.option("--steps", type=int, default=None, help="override the profile's number of steps")
+@click.option("--steps", type=click.IntRange(min=1), default=None, help="override the profile's number of steps")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--device", default=None, help="cpu, cuda, ... (default: CUDA when present)")
-@click.option("--threads", type=int, default=None, help="torch CPU threads (1 is fastest on a busy machine)")
+@click.option("--device", default=None, callback=check_device, help="cpu, cuda, ... (default: CUDA when present)")
+@click.option(
+    "--threads", type=click.IntRange(min=1), default=None, help="torch CPU threads (1 is fastest on a busy machine)"
+)
 @click.option("--mlflow", is_flag=True, help="also log the training to the local MLflow store (mlflow extra)")
 @click.option(
     "--no-shipped",

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from mpd.cli import check_device
 from mpd.schema import ConfigError
 
 
@@ -85,7 +86,7 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
     "shipped prior) or 'default' (the default shipped prior)",
 )
 @click.option("--set", "overrides", multiple=True, help="planner setting override, e.g. --set guide_lr=0.5")
-@click.option("--device", default=None)
+@click.option("--device", default=None, callback=check_device)
 @click.option("--out", type=click.Path(file_okay=False), required=True, help="output folder")
 def plan(
     task_name,

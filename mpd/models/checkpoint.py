@@ -53,7 +53,15 @@ def save_atomic(obj: Any, path: Path) -> None:
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        torch.save(obj, tmp)
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as e:  # torch's zip writer reports a full disk as "unexpected pos ..."
+            import errno
+            import shutil
+
+            if shutil.disk_usage(tmp.parent).free < (tmp.stat().st_size if tmp.exists() else 0) + (1 << 20):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path)) from e
+            raise
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
