@@ -103,15 +103,15 @@ CLI_CASES = [
     (["plan", "--task", TASK, "--planner", "gp-cost", "--n-contexts", "-1", "--out", "{root}/o"], "--n-contexts"),
     (["plan", "--task", TASK, "--planner", "gp-cost", "--set", "nokey", "--out", "{root}/o"], "nokey"),
     (["plan", "--task", TASK, "--planner", "gp-cost", "--set", "bogus_key=1", "--out", "{root}/o"], "bogus_key"),
-    (["plan", "--task", TASK, "--planner", "gp-cost", "--device", "bogus", "--out", "{root}/o"], "--device"),  # fix
+    (["plan", "--task", TASK, "--planner", "gp-cost", "--device", "bogus", "--out", "{root}/o"], "--device"),  # same
     (["plan", "--task", TASK, "--planner", "dprior", "--model", "{garbage}", "--out", "{root}/o"], "--model"),
     (["planners", "check", "nosuch"], "nosuch"),
     (["run", "nosuchspec"], "nosuchspec"),
     (["run", "{badspec}"], "badspec.toml"),
     (["run", "{garbage}"], "garbage.toml"),
-    (["run", "{badspec}", "--workers", "0"], "--workers"),  # needed a fix (accepted)
+    (["run", "{badspec}", "--workers", "0"], "--workers"),  # IntRange added with the fixes (not seen failing before)
     (["run", "{badspec}", "--scale", "2"], "--scale"),
-    (["run", "{badspec}", "--device", "bogus"], "--device"),  # needed a fix
+    (["run", "{badspec}", "--device", "bogus"], "--device"),  # checked by the same --device fix
     (["runs", "show", "nosuchrun"], "nosuchrun"),
     (["runs", "compare", "nosuchrun", "other"], "nosuchrun"),
     (["report", "nosuchrun"], "nosuchrun"),
