@@ -2,7 +2,7 @@
 ``venv`` and pip (uv would ignore the local CPU wheel of torch and download several GB of CUDA builds), and
 re-installed only when ``pyproject.toml`` changes: a second ``nox -s demo`` starts in seconds.
 
-    nox -s tests                  unit, property and end-to-end tests (all, slow ones too: nox -s tests -- -m "slow or not slow")
+    nox -s tests                  unit, property and end-to-end tests (every one: nox -s tests -- -m "slow or not slow")
     nox -s lint                   ruff check and ruff format --check
     nox -s demo                   the quick experiment end to end: dataset, training, every method, recording, report
     nox -s experiments -- SPEC    run an experiment spec (benchmarks/specs/NAME.toml or a path)

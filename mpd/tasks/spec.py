@@ -227,8 +227,8 @@ class TrainingSpec:
     # the validation loss stay float32) where the device computes bf16 natively (AVX-512 BF16, AMX, a GPU); on a CPU
     # without (e.g. AVX2 only) a bf16 training runs in fp32 arithmetic, because emulated bf16 is ~30x slower
     # (mpd.device.training_arithmetic; the model's meta records "arithmetic"). The same setting gives the same model
-    # identity everywhere: bit-identical on the same CPU type and torch thread count, statistically equivalent elsewhere (bf16 and fp32
-    # trainings of equal steps sample alike: reports/recipe-study-2d).
+    # identity everywhere: bit-identical on the same CPU type and torch thread count, statistically equivalent
+    # elsewhere (bf16 and fp32 trainings of equal steps sample alike: reports/recipe-study-2d).
     precision: Literal["fp32", "bf16"] = "fp32"
     # weight of the model's last row in the diffusion loss, relative to 1 for every other row (a weighted mean over
     # rows). With an end-effector goal that row is the free final configuration (the B-spline's last free control
