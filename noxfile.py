@@ -130,7 +130,7 @@ def gpu(session: nox.Session) -> None:
     session.run(sys.executable, str(ROOT / "benchmarks" / "gpu_check.py"), "--out", out, external=True)
 
 
-# what the lent GPU machine's image lacks of mpd's dependencies (its python3 holds torch, numpy, scipy, pandas,
+# what an offline GPU machine's image lacks of mpd's dependencies (its python3 holds torch, numpy, scipy, pandas,
 # matplotlib, pytest, ...): pybullet has no wheel for it (its tests skip there), rerun and ray are not needed
 GPU_WHEELS = ["ompl==2.0.1", "pytorch_kinematics==0.10.0", "arm_pytorch_utilities", "pytorch_seed"]
 # the files of pybullet_data that mpd reads without pybullet (the Panda's kinematics come from its URDF)

@@ -1,12 +1,12 @@
-"""The prepared GPU check: everything a lent CUDA machine should tell us, in one command and within 10 minutes.
+"""The prepared GPU check: everything a CUDA machine should tell us, in one command and within 10 minutes.
 
 On a machine with CUDA it runs the CUDA tests (they skip on a CPU), the plan and network benchmarks on the GPU, a
 short training, and writes one JSON summary. Every section is timed and guarded: one that fails records its error
 and the others still run. It runs on a CPU too (``--device cpu --quick``, tested in ``tests/test_gpu_check.py``),
-so the command is known to work before a GPU is lent.
+so the command is known to work before it runs on a GPU.
 
 With internet (any CUDA machine):   nox -s gpu                 (installs mpd, then runs this)
-The lent, offline machine (its python3 has a CUDA torch): prepare the wheels here once, `nox -s gpu_wheels` (mpd's
+An offline GPU machine (its python3 has a CUDA torch): prepare the wheels here once, `nox -s gpu_wheels` (mpd's
 dependencies that image lacks, for its Python 3.12, into `.whl/`), then in one device call that carries `.whl`:
 
     python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
@@ -14,7 +14,7 @@ dependencies that image lacks, for its Python 3.12, into `.whl/`), then in one d
     python3 benchmarks/gpu_check.py --out $OUT/gpu.json
 
 (`.whl/pybullet_data` holds the Panda URDF, which mpd reads from pybullet_data, for that machine has no pybullet.)
-It took 65 s on an H200 on 2026-12-04 (benchmarks/results/2026-12-04-h200-gpu-check.json). The rest of a lease can
+It took 65 s on an H200 on 2026-12-04 (benchmarks/results/2026-12-04-h200-gpu-check.json). The rest of a GPU's time can
 train a prior: benchmarks/gpu_train.py.
 
 Sections: ``environment`` (torch, CUDA, device, capability), ``cuda_tests`` (pytest -k cuda: passed / failed /

@@ -1,6 +1,6 @@
-"""Train priors on a lent GPU inside a deadline, and bring them back in their shipped form.
+"""Train priors on a GPU inside a deadline, and bring them back in their shipped form.
 
-A lent GPU machine is offline, holds the working tree only (64 MiB) and lends minutes, not hours. So the training
+An offline GPU machine holds the working tree only (64 MiB) and runs for minutes, not hours. So the training
 arrays are exported here, the step budget is fitted there to the time left, and what comes back is the shipped file
 (EMA weights, bfloat16) with its lock, the training record (``meta.json``) and a summary:
 
@@ -102,7 +102,7 @@ def load_arrays(path: Path):
 
 def flat(shipped_file: Path, out: Path) -> Path:
     """Move a shipped file and its lock (``<root>/models/<task>/``) to ``out`` itself: a device call brings back the
-    files of its output folder only a few levels deep (the lease of 2026-12-04 left a shipped prior out that way);
+    files of its output folder only a few levels deep (the run of 2026-12-04 left a shipped prior out that way);
     `mpd/priors/models/<task>/` is where they go here."""
     out.mkdir(parents=True, exist_ok=True)
     lock = shipped_file.with_name(shipped_file.name.removesuffix(".pt") + ".lock.json")
@@ -148,7 +148,7 @@ def train(args) -> int:
     n = args.probe_steps
     try:  # on CUDA the step is captured in a CUDA graph (mpd.models.cuda_graph); should that fail, train eagerly
         short = probe(n)
-    except Exception as e:  # noqa: BLE001 - the lease's minutes are better spent on an eager run than on nothing
+    except Exception as e:  # noqa: BLE001 - a GPU's minutes are better spent on an eager run than on nothing
         if os.environ.get("MPD_CUDA_GRAPH") == "0" or not device.startswith("cuda"):
             raise
         summary["cuda_graph_error"] = f"{type(e).__name__}: {e}"[:2000]

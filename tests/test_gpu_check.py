@@ -1,5 +1,5 @@
 """The prepared GPU check (benchmarks/gpu_check.py) runs end to end, here on the CPU, so that the command is known to
-work before a GPU machine is lent: every section present, none failed, the numbers sane."""
+work before it runs on a GPU machine: every section present, none failed, the numbers sane."""
 
 from __future__ import annotations
 

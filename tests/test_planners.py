@@ -376,7 +376,7 @@ def test_compiled_network_plans_like_the_eager_one():
 @pytest.mark.parametrize("method", ["mpd", "dprior", "cvae-cost"])
 def test_cuda_plan_with_a_model_loaded_on_the_cpu(task_name, method):
     """A planner on a GPU given a model loaded on the CPU plans on the GPU with a copy of it (the caller's model
-    stays on the CPU), and its samples have the CPU plan's shape and are finite (the lent H200 of 2026-12-04 found
+    stays on the CPU), and its samples have the CPU plan's shape and are finite (an H200 run of 2026-12-04 found
     the network left on the CPU)."""
     task = load_task(task_name)
     kind = "cvae" if method.startswith("cvae") else "diffusion"
