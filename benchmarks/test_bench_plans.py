@@ -49,6 +49,19 @@ def authors_task(name: str) -> Task:
     return Task(dataclasses.replace(task.spec, trajectory=tr), task.path)
 
 
+def bench_planner(task: Task, method: str, **settings):
+    """MPD (``method="mpd"``) or Dprior (``"prior"``) on the task's extra-objects scene, a random-weight model of the
+    authors' sizes, guidance on the last 30 % of the DDIM steps as in their configs, and these planner settings."""
+    return make_planner(
+        "mpd" if method == "mpd" else "dprior",
+        task,
+        model=random_model(task, make_parametrization(task)),
+        device="cpu",
+        extra_objects=True,
+        overrides={"guide_fraction": 0.3, **settings},
+    )
+
+
 @pytest.fixture(autouse=True)
 def two_threads():
     n = torch.get_num_threads()
@@ -68,14 +81,7 @@ def test_plan(benchmark, which, method, precision, network):
         # U-Net forward's cache entries are shared by all its modules; a lookup walks past those of other models
         # and precisions, ~10-30 % of an EnvSimple2D pass with the other cases' graphs in front)
         torch._dynamo.reset()
-    planner = make_planner(
-        "mpd" if method == "mpd" else "dprior",
-        task,
-        model=random_model(task, make_parametrization(task)),
-        device="cpu",
-        extra_objects=True,
-        overrides={"guide_fraction": 0.3, "network_precision": precision, "network_compile": network == "compiled"},
-    )
+    planner = bench_planner(task, method, network_precision=precision, network_compile=network == "compiled")
     ctx = plan_context(task, "cpu")
     timings = []
 
@@ -116,14 +122,7 @@ def test_plan_api_defaults(benchmark, which, method):
 
     task = authors_task(TASKS[which])
     torch._dynamo.reset()
-    planner = make_planner(
-        "mpd" if method == "mpd" else "dprior",
-        task,
-        model=random_model(task, make_parametrization(task)),
-        device="cpu",
-        extra_objects=True,
-        overrides={"guide_fraction": 0.3, **FAST_SETTINGS},
-    )
+    planner = bench_planner(task, method, **FAST_SETTINGS)
     ctx = plan_context(task, "cpu")
     t0 = time.perf_counter()
     planner.plan(ctx, 100, seed=0)
@@ -168,14 +167,7 @@ def test_plan_time_obstacles(benchmark, which):
 
     task = authors_task(TASKS[which])
     torch._dynamo.reset()
-    planner = make_planner(
-        "mpd",
-        task,
-        model=random_model(task, make_parametrization(task)),
-        device="cpu",
-        extra_objects=True,
-        overrides={"guide_fraction": 0.3, **FAST_SETTINGS},
-    )
+    planner = bench_planner(task, "mpd", **FAST_SETTINGS)
     base = planner.env
     ctx = plan_context(task, "cpu")
     planner.plan(ctx, 100, seed=0)  # compiles
