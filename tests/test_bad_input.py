@@ -9,7 +9,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
-from concurrent.futures import ThreadPoolExecutor
+import time
 from pathlib import Path
 
 import pytest
@@ -120,9 +120,7 @@ CLI_CASES = [
 ]
 
 
-def test_every_verb_with_bad_options_fails_in_one_line(tmp_path):
-    root = tmp_path / "r oot é"  # spaces and non-ASCII in every path
-    root.mkdir()
+def _bad_files(root: Path) -> dict[str, str]:
     files = {
         "root": str(root),
         "garbage": str(root / "garbage.toml"),
@@ -134,20 +132,57 @@ def test_every_verb_with_bad_options_fails_in_one_line(tmp_path):
     Path(files["baddef"]).write_text(f'name = "x"\ntask = "{TASK}"\nn_contexts = -3\nseed = 0\n')
     Path(files["badspec"]).write_text('name = 3\n[axes]\nmethod = ["nope"]\n')
     Path(files["nonascii"]).write_text('name = "ü x"\n')
+    return files
 
-    def one(case):
-        argv, names = case
-        r = mpd(root, *[a.format(**files) for a in argv])
+
+def _mpd_in_process(root: Path, argv: list[str], monkeypatch, capsys) -> subprocess.CompletedProcess:
+    """`mpd ARGV` through the command's own entry point (mpd.cli.main) in this process: its exit status and its
+    output, as a subprocess would have them (a SystemExit with a message prints it, as the interpreter does). An
+    exception main lets through fails the test with its traceback."""
+    from mpd.cli import main
+
+    for k, v in _env(root).items():
+        if k.startswith("MPD_") or k == "OMP_NUM_THREADS":
+            monkeypatch.setenv(k, v)
+    monkeypatch.setattr(sys, "argv", ["mpd", *argv])
+    capsys.readouterr()
+    code: int | str | None = 0
+    try:
+        main()
+    except SystemExit as e:
+        code = e.code
+    out, err = capsys.readouterr()
+    if isinstance(code, str):
+        err, code = err + code + "\n", 1
+    return subprocess.CompletedProcess(argv, code or 0, out, err)
+
+
+def test_every_verb_with_bad_options_fails_in_one_line(tmp_path, monkeypatch, capsys):
+    """Every case through the command's entry point in this process (a subprocess per case would spend ~1 s each
+    importing torch); the next test runs a few of them as real subprocesses."""
+    root = tmp_path / "r oot é"  # spaces and non-ASCII in every path
+    root.mkdir()
+    files = _bad_files(root)
+    failures = []
+    for argv, names in CLI_CASES:
+        with monkeypatch.context() as m:
+            r = _mpd_in_process(root, [a.format(**files) for a in argv], m, capsys)
         try:
             assert_one_line_error(r, names)
         except AssertionError as e:
-            return f"{argv}: {e}"
-        return None
-
-    with ThreadPoolExecutor(2) as pool:
-        failures = [f for f in pool.map(one, CLI_CASES) if f]
+            failures.append(f"{argv}: {e}")
     assert not failures, "\n".join(failures)
     assert not (root / "cache").exists() or not any((root / "cache").rglob("*.pt"))  # nothing trained by a bad call
+
+
+@pytest.mark.parametrize("i", [0, 1, 9, len(CLI_CASES) - 1])
+def test_bad_options_fail_in_one_line_from_the_installed_command(tmp_path, i):
+    """A few of the cases as the user meets them: a fresh `python -m mpd.cli` process, its exit status and stderr."""
+    root = tmp_path / "r oot é"
+    root.mkdir()
+    files = _bad_files(root)
+    argv, names = CLI_CASES[i]
+    assert_one_line_error(mpd(root, *[a.format(**files) for a in argv]), names)
 
 
 # ---- bad fields of definition, spec and task files, from Python (ConfigError, naming the file) ----
@@ -223,6 +258,9 @@ def test_task_file_with_a_bad_field_raises_config_error(tmp_path):
 # ---- corrupted artifacts in the cache ----
 
 
+_DURATIONS: dict[str, float] = {}
+
+
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
     """A tiny dataset and a 20-step model in a cache under a path with spaces and non-ASCII."""
@@ -231,8 +269,10 @@ def made(tmp_path_factory):
     d = _definition(root / "tiny.toml")
     r = mpd(root, "data", "generate", str(d), timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
+    t1 = time.monotonic()
     r = mpd(root, "train", "--task", TASK, "--dataset", str(d), "--steps", "20", "--threads", "1", timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
+    _DURATIONS["train"] = time.monotonic() - t1  # this machine's pace, for the kill -9 test
     model = Path(r.stdout.strip().splitlines()[-1].split("model: ", 1)[1])
     return root, d, model
 
@@ -325,26 +365,57 @@ def test_two_trainings_of_one_identity_at_once_give_the_model_of_one(made, tmp_p
 # ---- kill -9 at random times, then resume ----
 
 
-def _kill_loop(root: Path, argv: list[str], kills: int, rng, lo: float, hi: float) -> int:
-    """Start argv, SIGKILL it after a random time, `kills` times (fewer if it finishes first), then let it finish."""
-    done = 0
-    for _ in range(kills):
-        p = subprocess.Popen(
-            [sys.executable, "-m", "mpd.cli", *argv],
-            cwd=REPO, env=_env(root), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
+def _files(d: Path) -> frozenset:
+    return frozenset((p, p.stat().st_size) for p in d.rglob("*") if p.is_file()) if d.is_dir() else frozenset()
+
+
+def _start(root: Path, argv: list[str]) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "mpd.cli", *argv],
+        cwd=REPO, env=_env(root), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+
+
+def _kill(p: subprocess.Popen) -> bool:
+    """SIGKILL p; False when it had already exited."""
+    if p.poll() is not None:
+        return False
+    p.kill()
+    p.wait()
+    return True
+
+
+def _kill_after_progress(root: Path, argv: list[str], watch: Path, rng, at_most: int) -> int:
+    """Run argv again and again, each time SIGKILLing it a random 0-0.2 s after it changed a file under `watch`
+    (a chunk or its temporary file appeared or grew), until it finishes: every kill lands mid-work, on any machine's
+    pace, and every run gets further than the one before. Returns the number of kills."""
+    kills = 0
+    for _ in range(at_most):
+        before = _files(watch)
+        p = _start(root, argv)
+        while p.poll() is None and _files(watch) == before:
+            time.sleep(0.01)
+        time.sleep(rng.uniform(0.0, 0.2))
+        if not _kill(p):
+            break
+        kills += 1
+    return kills
+
+
+def _kill_at_random_times(root: Path, argv: list[str], pace: float, rng, n: int) -> int:
+    """Run argv n times, each SIGKILLed at a random fraction (0.2-0.8) of `pace`, its uninterrupted duration on this
+    machine (a run of nothing on disk until its end: a 20-step training). Returns the number of kills."""
+    kills = 0
+    for _ in range(n):
+        p = _start(root, argv)
         try:
-            p.wait(timeout=rng.uniform(lo, hi))
+            p.wait(timeout=rng.uniform(0.2, 0.8) * pace)
         except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-            done += 1
-    r = mpd(root, *argv, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    return done
+            kills += _kill(p)
+    return kills
 
 
-@pytest.mark.slow  # ~3 min on a quiet 2-core CPU
+@pytest.mark.slow  # ~1 min on a quiet 2-core CPU
 def test_kill_9_at_random_times_then_resume_gives_the_uninterrupted_artifacts(made, tmp_path):
     import random
 
@@ -355,7 +426,11 @@ def test_kill_9_at_random_times_then_resume_gives_the_uninterrupted_artifacts(ma
     root.mkdir()
     (root / "tiny.toml").write_text(d.read_text())
     rng = random.Random(0)
-    kills = _kill_loop(root, ["data", "generate", str(root / "tiny.toml")], 12, rng, 3.0, 9.0)
+    gen = ["data", "generate", str(root / "tiny.toml")]
+    kills = _kill_after_progress(root, gen, root / "cache" / "datasets", rng, at_most=12)
+    assert kills >= 2, kills  # two chunks, each with its temporary file: at least two kills mid-work
+    r = mpd(root, *gen, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
     ref = {p.relative_to(root0): p.read_bytes() for p in (root0 / "cache" / "datasets").rglob("*.npz")}
     got = {p.relative_to(root): p.read_bytes() for p in (root / "cache" / "datasets").rglob("*.npz")}
     assert got == ref
@@ -365,8 +440,10 @@ def test_kill_9_at_random_times_then_resume_gives_the_uninterrupted_artifacts(ma
     la, lb = json.loads(a.read_text()), json.loads(b.read_text())
     assert la["outs"] == lb["outs"] and la["identity"] == lb["identity"]  # the lock's hashes (its timings differ)
     argv = ["train", "--task", TASK, "--dataset", str(root / "tiny.toml"), "--steps", "20", "--threads", "1"]
-    kills += _kill_loop(root, argv, 10, rng, 2.0, 8.0)
-    assert kills >= 20
+    kills = _kill_at_random_times(root, argv, _DURATIONS["train"], rng, n=4)
+    assert kills >= 2, kills
+    r = mpd(root, *argv, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
     (m,) = (root / "cache" / "models").rglob("model.pt")
     assert m.relative_to(root) == model.relative_to(root0)
     wa = torch.load(m, map_location="cpu", weights_only=False)
