@@ -15,7 +15,6 @@ with one line that names the argument.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ from mpd.planners.inputs import PlanningInputError, as_array, check_configuratio
 # The network path a planner of the API runs by default: compiled (torch.compile, frozen weights) in bf16 where the
 # device computes it natively, else fp32 (PlannerSettings.network_precision = "auto"). Each batch size compiles once
 # per process, outside the timed plan (MotionPlanner.warmup); inductor's on-disk cache makes later processes faster.
-FAST_SETTINGS = {"network_compile": True, "network_precision": "auto"}
+from mpd.planners.settings import FAST_SETTINGS, fast_enabled
 
 
 @dataclass(frozen=True)
@@ -149,7 +148,6 @@ class MotionPlanner:
         self._rotation_deg = rotation_deg
         self._scenes: dict[str, Any] = {}  # obstacles digest -> environment (its grids stay built)
         self._scoring = None
-        self._warm: set[int] = set()
         self._git: str | None = None
 
     # -- description ---------------------------------------------------------------------------------------------
@@ -265,28 +263,8 @@ class MotionPlanner:
     def warmup(self, n_samples: int = 100) -> float:
         """Compile the denoising network for batches of ``n_samples`` (done by the first plan of that size
         otherwise, before its clock starts); returns the seconds it took (0 when there is nothing to compile)."""
-        if not self.settings.network_compile or self.model is None or self.model.kind != "diffusion":
-            return 0.0
-        if n_samples in self._warm:
-            return 0.0
-        from mpd.device import network_autocast, network_precision
-
-        t0 = time.perf_counter()
-        net = self.model.network
-        dev = self._planner.device
-        shape = (n_samples, self._planner.param.n_free, self.dof)
-        ctx = {k: torch.zeros(1, *s, device=dev) for k, s in self._context_shapes().items()}
-        precision = network_precision(self.settings.network_precision, dev)
-        with torch.no_grad(), network_autocast(precision, dev):
-            emb = net.embed_context(ctx)
-            net(torch.zeros(shape, device=dev), net.n_diffusion_steps - 1, emb, compiled=True)
-        self._warm.add(n_samples)
-        return time.perf_counter() - t0
-
-    def _context_shapes(self) -> dict[str, tuple[int, ...]]:
-        from mpd.models.context import context_shapes
-
-        return context_shapes(self.model.context_kind, self.dof)
+        warm = getattr(self._planner, "warmup", None)
+        return warm(n_samples) if warm is not None else 0.0
 
     def plan(
         self,
@@ -460,7 +438,7 @@ def load_planner(
     if preset not in ("official", "paper"):
         raise PlanningInputError("preset", f"{preset!r} is not official or paper")
     check_task_settings(t)
-    fast = fast and os.environ.get("MPD_COMPILE", "1").strip().lower() not in ("0", "false", "no", "off")
+    fast = fast and fast_enabled()
     overrides = {**(FAST_SETTINGS if fast and cls.model_kind == "diffusion" else {}), **settings}
     from mpd.planners.settings import PlannerSettings
 

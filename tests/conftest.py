@@ -7,6 +7,9 @@ import random
 
 # figures are written without a display; set before anything imports matplotlib
 os.environ.setdefault("MPLBACKEND", "Agg")
+# spec runs and the Python API compile the diffusion network by default (~20-60 s per batch size on 2 cores); the
+# tests run it eager unless they ask for the compiled one (test_experiments, test_models, test_planners, test_api)
+os.environ.setdefault("MPD_COMPILE", "0")
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

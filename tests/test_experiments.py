@@ -470,6 +470,42 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     assert (index.parent / "figures" / "learning_curves.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow  # compiles the 2-D network once (~20-40 s on 2 cores)
+def test_spec_runs_compile_the_network_by_default_before_the_first_timed_plan(work, monkeypatch):
+    """Without a setting, a spec run's diffusion planners run the compiled network (bf16 where the CPU has it),
+    compiled before the first timed plan (time_warmup in that row only); methods without a network and
+    ``fast = false`` run as before; MPD_COMPILE=0 turns it off."""
+    from mpd.device import network_precision
+
+    monkeypatch.delenv("MPD_COMPILE", raising=False)
+    p = write_spec(
+        work,
+        "fast",
+        """
+        method = ["gp-cost", "dprior"]
+        "training.steps" = [20]
+        "model.unet_dim" = [8]
+        """,
+        n_contexts=3,
+    )
+    p.write_text(p.read_text().replace('method = ["gp-cost"]\n', "", 1).replace("extra_objects = [false, true]", ""))
+    df = _run(p, work / "runs" / "fast")
+    dp, gp = df[df["method"] == "dprior"], df[df["method"] == "gp-cost"]
+    assert dp["info_network_compiled"].eq(True).all()
+    assert set(dp["info_network_precision"]) == {network_precision("auto", "cpu")}
+    assert "info_network_compiled" not in gp or not gp["info_network_compiled"].eq(True).any()
+    warm = dp.sort_values("finished_at")["time_warmup"].to_numpy()
+    assert warm[0] > 0 and (warm[1:] == 0).all()  # compiled once, in front of the first plan
+    assert dp["time_total"].max() < warm[0]  # and never inside a timed plan
+    # fast = false, or MPD_COMPILE=0: the eager network, nothing compiled
+    plan = load_spec(p).cells()
+    assert plan  # the spec is unchanged but for the switch below
+    p.write_text(p.read_text().replace('name = "fast"', 'name = "eager"\nfast = false'))
+    eager = _run(p, work / "runs" / "eager")
+    assert not eager.loc[eager["method"] == "dprior", "info_network_compiled"].any()
+    assert (eager["time_warmup"] == 0).all()
+
+
 def test_a_run_made_in_parts_keeps_every_parts_tasks_cells_and_artifacts(work):
     """`--only task=A`, then `--only task=B` into one run folder: the manifest names both tasks' files, cells and
     artifacts (dataset and its hash), as the rows do (the second part once overwrote the first's artifacts)."""

@@ -23,6 +23,7 @@ from mpd.experiments.results import RowStore, read_results, write_json, write_pa
 from mpd.experiments.spec import Cell, Spec
 from mpd.experiments.units import Unit, UnitResult, run_unit
 from mpd.paths import runs_dir
+from mpd.planners.settings import fast_enabled
 from mpd.provenance import cpu_model, git_state, provenance
 from mpd.schema import file_sha256
 
@@ -286,6 +287,7 @@ class Runner:
                     provenance=dict(prov, dataset_context_id=int(contexts.context_id[j])),
                     data_range=data_range,
                     task_path=str(self.spec.task_file(p["task"])),
+                    fast=self.spec.data.fast and fast_enabled(),
                 )
 
     def _execute(self, units: list[Unit], store: RowStore, on_result) -> None:

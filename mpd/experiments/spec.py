@@ -120,6 +120,11 @@ class SpecFile:
     # picks the evaluation contexts (their order in the held-out split); the seeds axis is the sampling noise only
     context_seed: int = 0
     device: str = "auto"
+    # the diffusion network's fast path (mpd.planners.settings.FAST_SETTINGS: compiled, bf16 where the device has
+    # it), compiled once per worker before its first timed plan; planner.network_* axes override it, and false here
+    # (or MPD_COMPILE=0 in the environment) runs the eager fp32 network. Every row records what ran
+    # (info_network_compiled, info_network_precision).
+    fast: bool = True
 
 
 @dataclass(frozen=True)

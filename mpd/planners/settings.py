@@ -30,6 +30,18 @@ from typing import Literal
 
 PRESETS = ("official", "paper")
 
+# The fast path of the diffusion network, the default of the Python API and of spec runs: compiled (inductor), in
+# bf16 where the device computes it natively (fp32 elsewhere). Planner settings or a spec's planner.network_* axes
+# override it; the environment variable MPD_COMPILE=0 (or false/no/off) turns it off: the eager fp32 network.
+FAST_SETTINGS = {"network_compile": True, "network_precision": "auto"}
+
+
+def fast_enabled() -> bool:
+    """False when the environment asks for the eager network (``MPD_COMPILE=0``)."""
+    import os
+
+    return os.environ.get("MPD_COMPILE", "1").strip().lower() not in ("0", "false", "no", "off")
+
 
 @dataclass(frozen=True)
 class PlannerSettings:
