@@ -418,8 +418,9 @@ def load_planner(
     ``model``: None for the task's default shipped prior (the one trained longest), a model identity or a prefix of
     one (the cache, then the shipped priors), ``"latest"`` (the newest trained here) or a checkpoint path; methods
     without a model ignore it. ``extra_objects`` / ``rotation_deg``: the task's own scene variants. ``fast``: the
-    compiled network in bf16 where the CPU has it (:data:`FAST_SETTINGS`); ``fast=False`` (or the environment
-    variable ``MPD_COMPILE=0``) is the eager fp32 network. ``settings``: :class:`mpd.planners.PlannerSettings`
+    compiled network in bf16 where the CPU has it (:data:`FAST_SETTINGS`), on a device torch.compile can build kernels
+    for (a CPU with a C++ compiler); ``fast=False`` (or the environment variable ``MPD_COMPILE=0``) is the eager fp32
+    network. ``settings``: :class:`mpd.planners.PlannerSettings`
     fields, e.g. ``guide_lr=0.5``."""
     from mpd.models.find import find_model
     from mpd.planners import get_planner_class, make_planner
@@ -438,7 +439,9 @@ def load_planner(
     if preset not in ("official", "paper"):
         raise PlanningInputError("preset", f"{preset!r} is not official or paper")
     check_task_settings(t)
-    fast = fast and fast_enabled()
+    from mpd.device import default_device
+
+    fast = fast and fast_enabled(device if device is not None else default_device())
     overrides = {**(FAST_SETTINGS if fast and cls.model_kind == "diffusion" else {}), **settings}
     from mpd.planners.settings import PlannerSettings
 

@@ -35,6 +35,23 @@ def native_bf16(device: torch.device | str) -> bool:
     return False
 
 
+def can_compile(device: torch.device | str) -> bool:
+    """Whether torch.compile (inductor) can build kernels for the device here: on a CPU it needs a C++ compiler
+    (``CXX``, g++, c++ or clang++ on the PATH), on CUDA triton. The fast path is the default only where this holds;
+    asked for explicitly (``network_compile = true``) it fails with a message naming the missing compiler."""
+    import shutil
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        import importlib.util
+
+        return importlib.util.find_spec("triton") is not None
+    if device.type != "cpu":
+        return False
+    names = [os.environ["CXX"]] if os.environ.get("CXX") else []
+    return any(shutil.which(n) for n in [*names, "g++", "c++", "clang++"])
+
+
 def training_arithmetic(precision: str, device: torch.device | str) -> str:
     """The arithmetic a training of ``precision`` runs in on ``device``: bf16 autocast where the device has native
     bf16 arithmetic, fp32 elsewhere (without AVX512_BF16 / AMX, oneDNN emulates bf16 and a training step of the

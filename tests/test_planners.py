@@ -398,3 +398,26 @@ def test_cli_names_a_missing_run_in_one_line(tmp_path):
         env=env,
     )
     assert r.returncode == 2 and r.stderr.strip() == f"error: no run found for nosuchrun in {tmp_path}"
+
+
+def test_the_fast_path_is_the_default_only_where_it_can_compile(monkeypatch, tmp_path):
+    """MPD_COMPILE=0 turns the default off, and so does a CPU without a C++ compiler on the PATH (inductor needs one):
+    a user without g++ gets the eager network, not a compile error."""
+    import shutil
+
+    from mpd.device import can_compile
+    from mpd.planners.settings import fast_enabled
+
+    monkeypatch.delenv("MPD_COMPILE", raising=False)
+    monkeypatch.delenv("CXX", raising=False)
+    has_cxx = any(shutil.which(n) for n in ("g++", "c++", "clang++"))
+    assert can_compile("cpu") == has_cxx and fast_enabled("cpu") == has_cxx and fast_enabled()
+    monkeypatch.setenv("MPD_COMPILE", "0")
+    assert not fast_enabled() and not fast_enabled("cpu")
+    monkeypatch.delenv("MPD_COMPILE")
+    monkeypatch.setenv("PATH", str(tmp_path))  # an empty folder: no compiler anywhere
+    assert not can_compile("cpu") and not fast_enabled("cpu")
+    (tmp_path / "my-cxx").write_text("#!/bin/sh\n")
+    (tmp_path / "my-cxx").chmod(0o755)
+    monkeypatch.setenv("CXX", "my-cxx")
+    assert can_compile("cpu") and fast_enabled("cpu")

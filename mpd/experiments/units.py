@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 _CACHE: dict[tuple, Any] = {}
+_MODELS: dict[tuple, Any] = {}  # the last model loaded, with its compiled network
 
 
 @dataclass
@@ -43,7 +44,7 @@ class UnitResult:
 def _planner(unit: Unit):
     from mpd.models.checkpoint import load_model
     from mpd.planners import get_planner_class, make_planner
-    from mpd.planners.settings import FAST_SETTINGS
+    from mpd.planners.settings import FAST_SETTINGS, fast_enabled
     from mpd.tasks import load_task
 
     key = (unit.cell_key, unit.model_path, unit.device, repr(unit.data_range))
@@ -53,14 +54,18 @@ def _planner(unit: Unit):
         task = load_task(unit.task_path or p["task"])
         model = None
         if unit.model_path:
-            model = load_model(
-                unit.model_path,
-                expect_task=task.name,
-                expect_parametrization=p["parametrization"],
-                device=unit.device,
-            )
+            mkey = (unit.model_path, unit.device, task.name, p["parametrization"])
+            if mkey not in _MODELS:  # the cells of one model (Dprior, Dprior+Cost, MPD) share it: compiled once
+                _MODELS.clear()
+                _MODELS[mkey] = load_model(
+                    unit.model_path,
+                    expect_task=task.name,
+                    expect_parametrization=p["parametrization"],
+                    device=unit.device,
+                )
+            model = _MODELS[mkey]
         overrides = dict(unit.overrides)
-        if unit.fast and get_planner_class(p["method"]).model_kind == "diffusion":
+        if unit.fast and get_planner_class(p["method"]).model_kind == "diffusion" and fast_enabled(unit.device):
             overrides = {**FAST_SETTINGS, **overrides}
         if p.get("sampler"):
             overrides["sampler"] = p["sampler"]

@@ -36,11 +36,18 @@ PRESETS = ("official", "paper")
 FAST_SETTINGS = {"network_compile": True, "network_precision": "auto"}
 
 
-def fast_enabled() -> bool:
-    """False when the environment asks for the eager network (``MPD_COMPILE=0``)."""
+def fast_enabled(device=None) -> bool:
+    """Whether the fast path is the default: not when the environment asks for the eager network
+    (``MPD_COMPILE=0``), nor on a ``device`` torch.compile cannot build kernels for (a CPU without a C++ compiler)."""
     import os
 
-    return os.environ.get("MPD_COMPILE", "1").strip().lower() not in ("0", "false", "no", "off")
+    if os.environ.get("MPD_COMPILE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return False
+    if device is None:
+        return True
+    from mpd.device import can_compile
+
+    return can_compile(device)
 
 
 @dataclass(frozen=True)
