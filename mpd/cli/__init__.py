@@ -25,6 +25,7 @@ COMMANDS = {
     "runs": ("mpd.cli.experiments", "runs"),
     "report": ("mpd.cli.reports", "report"),
     "view": ("mpd.cli.viz", "view"),
+    "bench": ("mpd.cli.bench", "bench"),
 }
 
 

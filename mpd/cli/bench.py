@@ -1,0 +1,116 @@
+"""``mpd bench``: public benchmarks. ``mpd bench mbm import`` reads the MotionBenchMaker Panda problems into the
+cache and reports the validity of their starts and goals under mpd's checker; ``mpd bench mbm run`` runs the
+RRTConnect baseline on them (resumable) and writes an OMPL benchmark database (Planner Arena)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+def _families(value: str | None) -> tuple[str, ...] | None:
+    from mpd.data.mbm import FAMILIES
+
+    if not value:
+        return None
+    fams = tuple(f.strip() for f in value.split(",") if f.strip())
+    bad = [f for f in fams if f not in FAMILIES]
+    if bad:
+        raise click.BadParameter(f"unknown families {bad} (known: {', '.join(FAMILIES)})", param_hint="--families")
+    return fams
+
+
+def _import(source: Path | None, download: bool, families: tuple[str, ...] | None):
+    from mpd.data import mbm
+    from mpd.paths import cache_dir
+
+    if download:
+        if source is not None:
+            raise click.UsageError("--source and --download exclude each other")
+        source = mbm.download_sdist(cache_dir() / "mbm" / "sdist")
+    return mbm.import_problems(source, families)
+
+
+@click.group()
+def bench() -> None:
+    """Public benchmarks: the MotionBenchMaker Panda problems (mbm)."""
+
+
+@bench.group()
+def mbm() -> None:
+    """MotionBenchMaker (MBM): 7 Panda problem families of 100 problems (docs/MBM.md)."""
+
+
+_SOURCE = click.option(
+    "--source",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="problems.tar.bz2 or a vamp-planner source package (.tar.gz); default: the shipped copy",
+)
+_DOWNLOAD = click.option("--download", is_flag=True, help="fetch the vamp-planner source package with pip instead")
+_FAMILIES = click.option("--families", default=None, help="comma-separated families (default: all seven)")
+_SLABS = click.option(
+    "--cylinder-slabs", type=click.IntRange(1, 64), default=4, show_default=True, help="boxes per cylinder"
+)
+
+
+@mbm.command("import")
+@_SOURCE
+@_DOWNLOAD
+@_FAMILIES
+@_SLABS
+@click.option("--no-check", is_flag=True, help="skip the validity of starts and goals")
+def import_(source, download, families, cylinder_slabs, no_check) -> None:
+    """Read the problems into the cache; per family: problems, starts and goals valid under mpd's checker."""
+    from mpd.data import mbm as mbm_data
+
+    fams = _families(families)
+    imp = _import(source, download, fams)
+    click.echo(f"{imp.root}  (import {imp.identity}, archive sha256 {imp.source_sha256[:16]})")
+    header = f"{'family':<18} {'problems':>8}"
+    if not no_check:
+        header += f" {'start valid':>11} {'goal valid':>10} {'goal hits scene':>15} {'goal beyond limits':>18}"
+    click.echo(header)
+    for fam in fams or imp.families:
+        n = len(imp.problems(fam))
+        line = f"{fam:<18} {n:>8}"
+        if not no_check:
+            v = mbm_data.endpoint_validity(imp, fam, cylinder_slabs)
+            line += f" {int(v['start_valid'].sum()):>11} {int(v['goal_valid'].sum()):>10}"
+            line += f" {int((~v['goal_env_free']).sum()):>15} {int((~v['goal_within_limits']).sum()):>18}"
+        click.echo(line)
+
+
+@mbm.command("run")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@_SOURCE
+@_FAMILIES
+@_SLABS
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="the first N problems of each family")
+@click.option("--time-limit", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+def run(out_dir, source, families, cylinder_slabs, limit, time_limit, seed) -> None:
+    """RRTConnect on the problems, one JSON line each in OUT_DIR/results.jsonl (a rerun resumes), then
+    OUT_DIR/benchmark.db (OMPL's benchmark database; open it with plannerarena)."""
+    from mpd.experiments import mbm as mbm_run
+
+    fams = _families(families)
+    imp = _import(source, False, fams)
+    settings = mbm_run.BaselineSettings(time_limit=time_limit, seed=seed, cylinder_slabs=cylinder_slabs)
+
+    def show(r: dict) -> None:
+        t = f"{r['time_first_s']:.3f} s" if r["time_first_s"] is not None else "-"
+        click.echo(f"{r['family']}/{r['index']:04d}  {r['status']:<13} first {t}")
+
+    try:
+        recs = mbm_run.run_baseline(imp, out_dir, settings, fams, limit, progress=show)
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    db = mbm_run.write_database(out_dir)
+    for fam in fams or imp.families:
+        rows = [r for r in recs if r["family"] == fam]
+        if rows:
+            ok = sum(r["success"] for r in rows)
+            click.echo(f"{fam:<18} solved {ok}/{len(rows)}")
+    click.echo(f"database: {db}")
