@@ -15,13 +15,15 @@ import os
 
 
 def init(address: str | None = None, num_cpus: int | None = None) -> None:
-    """Connect to the cluster at ``address``, or start a local Ray with ``num_cpus`` (once per process)."""
+    """Connect to the cluster at ``address``, or start a local Ray with ``num_cpus`` (once per process). Every worker
+    of this job pins its threads when it starts (`mpd.executor.pin_threads`: one thread, as its task has one CPU)."""
     import ray
 
     if ray.is_initialized():
         return
     kw = {"address": address} if address else {"num_cpus": num_cpus}
-    ray.init(include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False, **kw)
+    hook = {"worker_process_setup_hook": "mpd.executor.pin_threads"}
+    ray.init(include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False, runtime_env=hook, **kw)
 
 
 def node_id() -> str:
