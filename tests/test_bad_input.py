@@ -475,3 +475,124 @@ def test_a_full_disk_fails_in_one_line_and_keeps_the_dataset(made, tmp_path):
         assert not list((root / "cache").rglob("model.pt")) and not list((root / "cache").rglob("*.tmp-*"))
     finally:
         subprocess.run(["umount", str(root)], check=False)
+
+
+# ---- a run's damaged artifacts: results table, recorded history, cached contexts, a deleted manifest ----
+
+
+@pytest.fixture(scope="module")
+def ran(made, tmp_path_factory):
+    """A finished run of GPprior+Cost (no model) over the tiny dataset's held-out contexts, one context recorded."""
+    from mpd.experiments.runner import Runner
+    from mpd.experiments.spec import load_spec
+
+    root0, d, _ = made
+    root = tmp_path_factory.mktemp("ran") / "r ü"
+    shutil.copytree(root0, root)
+    spec = root / "s.toml"
+    spec.write_text(
+        textwrap.dedent(f"""
+        name = "s"
+        n_contexts = 3
+        n_samples = 8
+        record_contexts = 1
+        [axes]
+        task = ["{TASK}"]
+        method = ["gp-cost"]
+        [tasks."{TASK}"]
+        dataset = "{root / "tiny.toml"}"
+        """)
+    )
+    mp = pytest.MonkeyPatch()
+    for k, v in _env(root).items():
+        if k.startswith("MPD_"):
+            mp.setenv(k, v)
+    try:
+        Runner(load_spec(spec), run_dir=root / "runs" / "s", progress=False).run()
+    finally:
+        mp.undo()
+    return root, root / "runs" / "s"
+
+
+def test_a_damaged_results_table_is_rebuilt_from_the_parts_or_named(ran, tmp_path, monkeypatch, capsys):
+    from mpd.experiments.results import read_results
+
+    root0, run0 = ran
+    root = tmp_path / "t ü"
+    shutil.copytree(root0, root)
+    run = root / "runs" / "s"
+    before = read_results(run)
+    table = run / "results.parquet"
+    table.write_bytes(table.read_bytes()[:200])  # truncated
+    with pytest.warns(UserWarning, match="results.parquet: does not read back"):
+        after = read_results(run)
+    pd_testing = pytest.importorskip("pandas").testing
+    pd_testing.assert_frame_equal(after.reset_index(drop=True), before.reset_index(drop=True))
+    shutil.rmtree(run / "parts")  # nothing left to rebuild it from: one line naming the table
+    with monkeypatch.context() as m:
+        r = _mpd_in_process(root, ["report", "run", str(run), "--no-recordings"], m, capsys)
+    assert_one_line_error(r, "results.parquet")
+
+
+def test_a_damaged_history_costs_its_recording_only(ran, tmp_path, monkeypatch, capsys):
+    root0, run0 = ran
+    root = tmp_path / "h ü"
+    shutil.copytree(root0, root)
+    run = root / "runs" / "s"
+    (hist,) = sorted((run / "histories").glob("*.npz"))
+    hist.write_bytes(hist.read_bytes()[:100])
+    import re
+
+    with monkeypatch.context() as m, pytest.warns(UserWarning, match=re.escape(hist.name) + ".*does not read back"):
+        r = _mpd_in_process(root, ["report", "run", str(run), "--force"], m, capsys)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (run / "report" / "summary.md").stat().st_size > 0
+
+
+def test_damaged_cached_contexts_are_made_again_identically(ran, tmp_path, monkeypatch):
+    from mpd.data.eval_contexts import load_context_file
+    from mpd.experiments.results import read_results
+    from mpd.experiments.runner import Runner
+    from mpd.experiments.spec import load_spec
+
+    root0, run0 = ran
+    root = tmp_path / "c ü"
+    shutil.copytree(root0, root)
+    files = sorted((root / "cache" / "contexts").glob(f"{TASK}-*.npz"))
+    assert files
+    good = {f: f.read_bytes() for f in files}
+    for f in files:
+        f.write_bytes(f.read_bytes()[:64])
+    for k, v in _env(root).items():
+        if k.startswith("MPD_"):
+            monkeypatch.setenv(k, v)
+    spec = load_spec(root / "s.toml")
+    Runner(spec, run_dir=root / "runs" / "again", progress=False).run()
+    for f, b in good.items():
+        load_context_file(f)  # reads back, its hash verified
+        assert f.read_bytes() == b
+    cols = ["cell_key", "context_index", "fraction_valid", "success"]
+    a, b = read_results(run0)[cols], read_results(root / "runs" / "again")[cols]
+    assert a.sort_values(cols[:2]).to_numpy().tolist() == b.sort_values(cols[:2]).to_numpy().tolist()
+
+
+def test_a_run_folder_losing_its_files_reports_what_is_left_or_fails_in_one_line(ran, tmp_path, monkeypatch, capsys):
+    """Files of a run folder deleted (by hand, or by a cleanup while a report runs): without its manifest the report
+    is still written from the results; without its results it fails in one line."""
+    root0, _ = ran
+    root = tmp_path / "m ü"
+    shutil.copytree(root0, root)
+    run = root / "runs" / "s"
+    (run / "manifest.json").unlink()
+    with monkeypatch.context() as m:
+        r = _mpd_in_process(root, ["report", "run", str(run), "--no-recordings"], m, capsys)
+    assert r.returncode == 0 and (run / "report" / "summary.md").is_file(), r.stderr[-2000:]
+    (run / "results.parquet").unlink()
+    shutil.rmtree(run / "parts")
+    for argv, names in (
+        (["report", "run", str(run), "--no-recordings"], "results.parquet"),
+        (["runs", "show", str(run)], "manifest.json"),
+    ):
+        with monkeypatch.context() as m:
+            r = _mpd_in_process(root, argv, m, capsys)
+        assert_one_line_error(r, names)

@@ -72,8 +72,8 @@ def main() -> None:
     except ConfigError as e:
         click.echo(f"error: {e}", err=True)
         sys.exit(2)
-    except FileNotFoundError as e:  # a run, model or file named on the command line that does not exist
-        click.echo(f"error: {e.args[-1] if e.args else e}", err=True)
+    except FileNotFoundError as e:  # a run, model or file named on the command line (or one of its files) is missing
+        click.echo(f"error: {f'{e.filename}: {e.strerror}' if e.filename else e.args[-1] if e.args else e}", err=True)
         sys.exit(2)
     except OSError as e:
         if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES):

@@ -13,6 +13,8 @@ of an end-effector-goal context is FK(q_goal), the pose the path really ends at.
 from __future__ import annotations
 
 import os
+import warnings
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -277,8 +279,12 @@ def evaluation_contexts(task: Task, n: int = 100, refresh: bool = False) -> Cont
         # context i depends only on (task, i): the first n of a larger cached set are the same contexts
         for m, p in sorted(_cached_sets(task).items()):
             if m >= n:
-                with np.load(p) as z:
-                    return _from_arrays(task, {k: v[:n] for k, v in z.items()})
+                try:
+                    with np.load(p) as z:
+                        return _from_arrays(task, {k: v[:n] for k, v in z.items()})
+                except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:  # a damaged cache file
+                    warnings.warn(f"{p}: does not read back ({type(e).__name__}); made again", stacklevel=2)
+                    p.unlink(missing_ok=True)
     cl = task.spec.collision.clearance
     both = SphereChecker(task, extra_objects=True, clearance=cl)
     train = SphereChecker(task, extra_objects=False, clearance=cl)

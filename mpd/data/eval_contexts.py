@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -298,6 +299,11 @@ def finalize(cs: ContextSet) -> ContextSet:
     cs.meta["sha256"] = sha
     path = contexts_dir() / f"{cs.task}-{cs.scene}-{sha[:16]}.npz"
     cs.meta["path"] = str(path)
+    if path.exists():
+        try:
+            load_context_file(path)
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):  # damaged: written again below
+            path.unlink()
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.npz")
@@ -317,8 +323,11 @@ def contexts_dir() -> Path:
 def load_context_file(path: str | Path) -> ContextSet:
     """A stored set, verified against the hash in its name and sidecar."""
     path = Path(path)
-    with np.load(path) as z:
-        arrays = {k: z[k] for k in z.files}
+    try:
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (EOFError, KeyError, zipfile.BadZipFile) as e:
+        raise ValueError(f"context file {path} does not read back ({type(e).__name__}: {e})") from None
     meta = json.loads(path.with_suffix(".json").read_text()) if path.with_suffix(".json").exists() else {}
     sha = arrays_sha256(arrays)
     if not path.stem.endswith(sha[:16]) or meta.get("sha256", sha) != sha:

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from pathlib import Path
 
 import pandas as pd
+
+from mpd.schema import ConfigError
 
 
 class RowStore:
@@ -91,7 +94,14 @@ def read_results(run_dir: Path) -> pd.DataFrame:
     n_parts = len(store.rows())
     if p.exists():
         newest_part = max((f.stat().st_mtime for f in store.dir.glob("*.jsonl")), default=0.0)
-        df = pd.read_parquet(p)
+        try:
+            df = pd.read_parquet(p)
+        except Exception as e:  # truncated or overwritten; the parts, when the run has them, hold the same rows
+            why = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+            if n_parts == 0:
+                raise ConfigError(p, "", f"does not read back ({why}); no parts to rebuild it from") from None
+            warnings.warn(f"{p}: does not read back ({why}); the table is rebuilt from the run's parts", stacklevel=2)
+            return store.table()
         if len(df) >= n_parts and p.stat().st_mtime >= newest_part:
             return df
     return store.table()

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
+import zipfile
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -469,9 +471,12 @@ def load_history(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any
     """A recorded (cell, context) from ``histories/<cell_key>-ctx<i>.npz``: (arrays, row parameters; the latter
     empty for histories written before the row was stored with them)."""
     path = Path(path)
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files if k not in ("row_json", "row_key")}
-        params = json.loads(str(z["row_json"])) if "row_json" in z.files else {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files if k not in ("row_json", "row_key")}
+            params = json.loads(str(z["row_json"])) if "row_json" in z.files else {}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:  # truncated or overwritten
+        raise ValueError(f"{path}: the recorded history does not read back ({type(e).__name__}: {e})") from None
     stem = path.stem
     if "-ctx" in stem:
         key, ctx = stem.rsplit("-ctx", 1)
@@ -515,7 +520,11 @@ def record_run(run_dir: str | Path, force: bool = False, histories: Iterable[Pat
     cells = json.loads(man_path.read_text()).get("cells", []) if man_path.exists() else []
     out = []
     for f in files:
-        arrays, params = load_history(f)
+        try:
+            arrays, params = load_history(f)
+        except ValueError as e:  # one damaged history costs its recording only
+            warnings.warn(f"{e}; its recording is not rebuilt", stacklevel=2)
+            continue
         if "task" not in params:
             params = {**_params_from_run(run_dir, params["cell_key"]), **params}
         if "task" not in params:

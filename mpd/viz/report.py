@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import shutil
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -232,7 +233,11 @@ def _pick_histories(run_dir: Path, d: pd.DataFrame) -> list[tuple[str, str, str,
     files = sorted((run_dir / "histories").glob("*.npz")) if (run_dir / "histories").exists() else []
     found: dict[tuple[str, str], dict[str, tuple[Path, dict]]] = {}
     for f in files:
-        _, params = load_history_params(f)
+        try:
+            _, params = load_history_params(f)
+        except ValueError as e:  # a damaged history: the figure takes another context (or none)
+            warnings.warn(f"{e}; skipped", stacklevel=2)
+            continue
         if "task" not in params:
             params = {**_params_from_run(run_dir, params.get("cell_key", "")), **params}
         if "task" not in params:
