@@ -10,12 +10,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing as mp
 import os
-import queue as queue_mod
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict
 from pathlib import Path
 
@@ -36,6 +33,7 @@ from mpd.data.storage import (
     write_chunk,
     write_chunk_bytes,
 )
+from mpd.executor import imap, report
 from mpd.provenance import provenance
 from mpd.schema import file_sha256
 
@@ -44,16 +42,7 @@ STATUSES = ("ok", "no_context", "invalid_start", "invalid_goal", "timeout", "pos
 POST_CHECK_ATTEMPTS = 3
 
 # ---------------------------------------------------------------------------------------------- worker side
-_PROGRESS = None  # a multiprocessing queue in pool workers: one message per finished context
 _CACHE: dict[str, tuple] = {}
-
-
-def _init_worker(progress) -> None:
-    import torch
-
-    torch.set_num_threads(1)
-    global _PROGRESS
-    _PROGRESS = progress
 
 
 def _tools(rd: ResolvedDefinition):
@@ -175,9 +164,8 @@ def _report(progress, success: bool) -> None:
 
 
 def _work(rd: ResolvedDefinition, i: int) -> dict:
-    """Pool task: compute and write chunk i."""
-    q = _PROGRESS
-    arrays, meta = compute_chunk(rd, i, (lambda s: q.put(bool(s))) if q is not None else None)
+    """Work item (this process or a pool worker): compute and write chunk i, reporting every finished context."""
+    arrays, meta = compute_chunk(rd, i, lambda s: report(bool(s)))
     return write_chunk(rd.data_dir, i, arrays, meta)
 
 
@@ -341,49 +329,22 @@ def _run(
         el = time.perf_counter() - t0
         bar.set_postfix_str(f"{paths[0] / max(el, 1e-9):.1f} paths/s", refresh=False)
 
+    mode = "ray" if executor == "ray" else ("process" if workers > 1 else "serial")
     try:
-        if executor == "ray":
+        if mode == "ray":
             _run_ray(rd, pending, tick)
-        elif workers == 1:
-            import torch
-
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)
-            try:
-                for i in pending:
-                    arrays, meta = compute_chunk(rd, i, tick)
-                    write_chunk(rd.data_dir, i, arrays, meta)
-            finally:
-                torch.set_num_threads(threads)
         else:
-            _run_pool(rd, pending, workers, tick)
+            # one thread per worker (and here): a chunk's bytes do not depend on how it was run
+            items = [(rd, i) for i in pending]
+            for _ in imap(_work, items, mode, workers, threads=1, progress=tick, name=_chunk_name):
+                pass
     finally:
         bar.close()
 
 
-def _run_pool(rd: ResolvedDefinition, pending: list[int], workers: int, tick) -> None:
-    ctx = mp.get_context("spawn")  # no fork: torch's thread pools and PyBullet do not survive it
-    q = ctx.Queue()
-    env_before = os.environ.get("OMP_NUM_THREADS")
-    os.environ["OMP_NUM_THREADS"] = "1"  # read by torch when a worker imports it
-    ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(q,))
-    try:
-        futures = {ex.submit(_work, rd, i) for i in pending}
-        while futures:
-            finished, futures = wait(futures, timeout=0.2, return_when=FIRST_COMPLETED)
-            _drain(q, tick)
-            for f in finished:
-                f.result()  # re-raise a worker's error
-        _drain(q, tick)
-    except BaseException:
-        ex.shutdown(wait=False, cancel_futures=True)
-        raise
-    finally:
-        if env_before is None:
-            os.environ.pop("OMP_NUM_THREADS", None)
-        else:
-            os.environ["OMP_NUM_THREADS"] = env_before
-    ex.shutdown(wait=True)
+def _chunk_name(item: tuple) -> str:
+    rd, i = item
+    return f"{rd.name} chunk {i}"
 
 
 def _ray_chunk(rd: ResolvedDefinition, i: int) -> tuple[dict, bytes]:
@@ -391,7 +352,6 @@ def _ray_chunk(rd: ResolvedDefinition, i: int) -> tuple[dict, bytes]:
     return its sidecar record (with the node) and archive bytes for the driver."""
     from mpd import distributed
 
-    distributed.single_threaded()
     arrays, meta = compute_chunk(rd, i)
     data = npz_bytes(arrays)
     record = chunk_record(i, data, dict(meta, node=distributed.node_id()))
@@ -401,34 +361,17 @@ def _ray_chunk(rd: ResolvedDefinition, i: int) -> tuple[dict, bytes]:
 
 
 def _run_ray(rd: ResolvedDefinition, pending: list[int], tick) -> None:
-    import ray
-
     from mpd.distributed import checked
 
-    # max_retries: Ray reruns a chunk whose worker died (a killed process, a lost node); an error raised by the
-    # code itself is not retried (it would fail again) and reaches the driver
-    task = ray.remote(num_cpus=1, max_retries=3)(_ray_chunk)
-    refs = {task.remote(rd, i): i for i in pending}
-    while refs:
-        ready, _ = ray.wait(list(refs), num_returns=1)
-        for ref in ready:
-            i = refs.pop(ref)
-            record, data = ray.get(ref)
-            checked(data, record["sha256"], f"{rd.name} chunk {i}")
-            ok, _ = verify_chunk(rd.data_dir, i, record["sha256"])
-            if not ok:  # not already here through a shared cache
-                write_chunk_bytes(rd.data_dir, i, data, record)
-            start, stop = record["contexts"]
-            for k in range(stop - start):
-                tick(k < record["successes"])
-
-
-def _drain(q, tick) -> None:
-    while True:
-        try:
-            tick(q.get_nowait())
-        except queue_mod.Empty:
-            return
+    # an error raised by the code itself is not retried by Ray (it would fail again) and reaches the driver
+    for (_, i), (record, data) in imap(_ray_chunk, [(rd, i) for i in pending], "ray", name=_chunk_name):
+        checked(data, record["sha256"], f"{rd.name} chunk {i}")
+        ok, _ = verify_chunk(rd.data_dir, i, record["sha256"])
+        if not ok:  # not already here through a shared cache
+            write_chunk_bytes(rd.data_dir, i, data, record)
+        start, stop = record["contexts"]
+        for k in range(stop - start):
+            tick(k < record["successes"])
 
 
 def _repo_relative(path: Path) -> str:
