@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 
 
 def init(address: str | None = None, num_cpus: int | None = None) -> None:
@@ -48,14 +47,6 @@ def cluster_cpus() -> int:
     return int(ray.cluster_resources().get("CPU", 1))
 
 
-def single_threaded() -> None:
-    """One torch thread per task: two tasks of two threads each on two cores run many times slower."""
-    import torch
-
-    torch.set_num_threads(1)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-
-
 def checked(data: bytes, sha256: str, what: str) -> bytes:
     """``data`` when its sha256 is ``sha256``; else a RuntimeError naming ``what`` (corrupted in transit)."""
     got = hashlib.sha256(data).hexdigest()
@@ -64,4 +55,4 @@ def checked(data: bytes, sha256: str, what: str) -> bytes:
     return data
 
 
-__all__ = ["checked", "cluster_cpus", "cluster_gpus", "init", "node_id", "single_threaded"]
+__all__ = ["checked", "cluster_cpus", "cluster_gpus", "init", "node_id"]

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mpd.data.eval_contexts import ContextSet
+from mpd.executor import imap, threads
 from mpd.models.data import training_arrays
 from mpd.schema import file_sha256
 from mpd.tasks import Task, load_task
@@ -388,23 +389,20 @@ def _steps_last(training: tuple) -> tuple:
 TRAIN_THREADS = 1
 
 
-def _train_job(job, progress: bool, threads: int | None = TRAIN_THREADS) -> Path:
-    import torch
-
+def _train_job(job, progress: bool) -> Path:
     from mpd.models.train import train_model
 
-    before = torch.get_num_threads()
-    if threads:
-        torch.set_num_threads(threads)
-    try:
+    with threads(TRAIN_THREADS):
         _, kind, _, arrays, model_spec, train_spec, _ = job
         return Path(train_model(arrays, kind, model_spec, train_spec, seed=0, progress=progress))
-    finally:
-        torch.set_num_threads(before)
 
 
-def _train_chain(chain: list, progress: bool, threads: int | None) -> list[Path]:
-    return [_train_job(j, progress, threads) for j in chain]
+def _train_chain(chain: list, progress: bool) -> list[Path]:
+    return [_train_job(j, progress) for j in chain]
+
+
+def _chain_name(item: tuple) -> str:
+    return "the training of " + ", ".join(f"{j[0]} {_model_label(j[1], j[2], j[6])}" for j in item[0])
 
 
 def _chain_key(job) -> tuple:
@@ -433,19 +431,16 @@ def train_models(
     chains: dict[tuple, list] = {}
     for j in sorted((j for j in jobs if not exists(j)), key=lambda j: j[5].steps):
         chains.setdefault(_chain_key(j), []).append(j)
+    done: dict[int, Path] = {}
     if executor == "ray" and chains:
-        _train_ray(list(chains.values()))
-        return [_train_job(j, progress) for j in jobs]  # all in the cache now: returns at once
-    n = min(max(1, workers), len(chains))
-    if n <= 1:
-        paths = {id(j): _train_job(j, progress) for j in sorted(jobs, key=lambda j: j[5].steps)}
-        return [paths[id(j)] for j in jobs]
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as pool:
-        futures = [(chain, pool.submit(_train_chain, chain, progress, TRAIN_THREADS)) for chain in chains.values()]
-        done = {id(j): path for chain, f in futures for j, path in zip(chain, f.result())}
+        _train_ray(list(chains.values()), address)
+    elif chains:
+        n = min(max(1, workers), len(chains))
+        items = [(chain, progress) for chain in chains.values()]
+        mode = "process" if n > 1 else "serial"
+        for (chain, _), paths in imap(_train_chain, items, mode, n, threads=TRAIN_THREADS, name=_chain_name):
+            done.update(zip(map(id, chain), paths))
+    # the others are in the cache now, or a shipped prior that train_model installs: each returns at once
     return [done[id(j)] if id(j) in done else _train_job(j, progress) for j in jobs]
 
 
@@ -455,9 +450,8 @@ def _ray_chain(chain: list) -> list[dict]:
 
     from mpd import distributed
 
-    distributed.single_threaded()
     out = []
-    for job, path in zip(chain, _train_chain(chain, False, TRAIN_THREADS)):
+    for job, path in zip(chain, _train_chain(chain, False)):
         meta = json.loads((path.parent / "meta.json").read_text())
         meta["node"] = distributed.node_id()
         # recorded here too: on a shared cache the driver finds this very file and writes nothing
@@ -471,22 +465,19 @@ def _ray_chain(chain: list) -> list[dict]:
     return out
 
 
-def _train_ray(chains: list[list]) -> None:
+def _train_ray(chains: list[list], address: str | None = None) -> None:
     """Every chain as a Ray task; each finished model is written into this process's cache (unless it already holds
     that very file: a shared cache), after its sha256 is checked."""
     import os
 
-    import ray
-
     from mpd import distributed
     from mpd.models.train import model_dir
 
+    distributed.init(address)
     gpu = distributed.cluster_gpus() > 0
-    task = ray.remote(num_gpus=1 if gpu else 0, num_cpus=0 if gpu else 1, max_retries=3)(_ray_chain)
-    refs = [task.remote(chain) for chain in chains]
-    while refs:
-        ready, refs = ray.wait(refs, num_returns=1)
-        for m in ray.get(ready[0]):
+    options = {"num_gpus": 1 if gpu else 0, "num_cpus": 0 if gpu else 1}
+    for _, models in imap(_ray_chain, [(chain,) for chain in chains], "ray", ray_options=options, name=_chain_name):
+        for m in models:
             data = distributed.checked(m["model"], m["sha256"], f"model {m['identity']}")
             meta = m["meta"]
             d = model_dir(m["task"], meta["kind"], meta["parametrization"], m["identity"])
