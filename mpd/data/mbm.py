@@ -22,6 +22,16 @@ mm for MBM's 3 cm cans with k = 4; one circumscribed box, k = 1, passes it by r 
 the hand of every grasp goal of the table and bookshelf families into its can). VAMP uses capsules, and the
 circumscribed box for the ``box`` family.
 
+Grasp targets. Every MBM goal is a grasp: MBM's query configurations (``configs/scenes/<scene>/*queries*.yaml`` in
+MBM's repository) name the objects a goal may grasp (``Can1`` on the tables and in the box, ``Cube1`` in the cage,
+any ``Can*`` on the shelves) and the stored problems do not say which one was taken; :func:`grasped_object` names it
+as the candidate whose centre is nearest MBM's grasp point (``GRASP_OFFSET`` along the hand's axis) at the goal.
+``grasp_target`` says what becomes of it: ``"obstacle"`` (the default, the strict reading: it is an obstacle like
+the others) or ``"ignored"`` (left out of the scene). mpd's hand spheres fill the gap between the fingers, which
+MBM's hand holds open around the object, so under ``"obstacle"`` the box family's top-down grasps and every cage
+goal put the hand into the grasped object; results with ``"ignored"`` are not comparable with numbers published on
+MBM (docs/MBM.md).
+
 The import is content addressed: its identity is the hash of the archive's sha256 and the importer's format
 version, and its files (``<cache>/mbm/panda-<identity>/``: one JSON file of problems and one task file per family,
 and ``index.json``) are written to temporary names and renamed.
@@ -65,6 +75,22 @@ FORMAT_VERSION = 1
 
 
 CYLINDER_SLABS = 4  # boxes per cylinder (see the module's docstring)
+
+# What becomes of the object a goal grasps (see the module's docstring): an obstacle (the strict reading) or left out
+GRASP_TARGETS = ("obstacle", "ignored")
+# MBM's grasp point (robowflex_resources' panda_grasptarget): this far along the z axis of mpd's end-effector link
+# (panda_hand), in m
+GRASP_OFFSET = 0.105
+# The objects a family's goals may grasp (MBM's query configurations): exact names, or a prefix ending in "*"
+GRASP_CANDIDATES = {
+    "table_pick": ("Can1",),
+    "table_under_pick": ("Can1",),
+    "box": ("Can1",),
+    "bookshelf_small": ("Can*",),
+    "bookshelf_tall": ("Can*",),
+    "bookshelf_thin": ("Can*",),
+    "cage": ("Cube1",),
+}
 
 
 @dataclass(frozen=True)
@@ -140,9 +166,10 @@ class Problem:
     def name(self) -> str:
         return f"{self.family}/{self.index:04d}"
 
-    def primitives(self, cylinder_slabs: int = CYLINDER_SLABS) -> list[Primitive]:
-        """The problem's scene as mpd primitives (world frame), to give at plan time."""
-        return [p for o in self.obstacles for p in o.primitives(cylinder_slabs)]
+    def primitives(self, cylinder_slabs: int = CYLINDER_SLABS, without: str | None = None) -> list[Primitive]:
+        """The problem's scene as mpd primitives (world frame), to give at plan time; ``without``: the name of a
+        collision object left out (every primitive of it)."""
+        return [p for o in self.obstacles if object_name(o) != without for p in o.primitives(cylinder_slabs)]
 
     def to_json(self) -> dict:
         return {
@@ -151,6 +178,49 @@ class Problem:
             "goal": list(self.goal),
             "obstacles": [o.to_json() for o in self.obstacles],
         }
+
+
+def object_name(o: Obstacle) -> str:
+    """The MoveIt collision object an obstacle belongs to (an object of several primitives names them ``id#k``)."""
+    return o.name.split("#", 1)[0]
+
+
+def _is_candidate(name: str, patterns: tuple[str, ...]) -> bool:
+    return any(name.startswith(p[:-1]) if p.endswith("*") else name == p for p in patterns)
+
+
+def grasp_points(robot, goals) -> np.ndarray:
+    """MBM's grasp point (``GRASP_OFFSET`` along the hand's z axis, world frame) of mpd's Panda at each goal:
+    (n, 7) joint positions -> (n, 3)."""
+    import torch
+
+    pos, rot = robot.ee_pose(torch.as_tensor(np.asarray(goals, dtype=np.float64)).reshape(-1, 7))
+    return (pos + rot[..., 2] * GRASP_OFFSET).numpy()
+
+
+def grasped_object(problem: Problem, grasp_point) -> str:
+    """The name of the collision object the problem's goal grasps: of the family's candidates
+    (``GRASP_CANDIDATES``), the one whose centre is nearest ``grasp_point`` (:func:`grasp_points` at the goal)."""
+    x = np.asarray(grasp_point, dtype=np.float64)
+    centres: dict[str, list[np.ndarray]] = {}
+    for o in problem.obstacles:
+        if _is_candidate(object_name(o), GRASP_CANDIDATES[problem.family]):
+            centres.setdefault(object_name(o), []).append(np.asarray(o.centre))
+    if not centres:
+        raise ValueError(f"{problem.name}: none of the objects {GRASP_CANDIDATES[problem.family]} in its scene")
+    return min(centres, key=lambda n: float(np.linalg.norm(np.mean(centres[n], axis=0) - x)))
+
+
+def scene_primitives(
+    problem: Problem, robot, grasp_target: str = "obstacle", cylinder_slabs: int = CYLINDER_SLABS
+) -> list[Primitive]:
+    """The scene of a problem to give at plan time: every object (``grasp_target="obstacle"``) or all but the one
+    its goal grasps (``"ignored"``); ``robot``: mpd's Panda (for the grasp point; unused under ``"obstacle"``)."""
+    if grasp_target not in GRASP_TARGETS:
+        raise ValueError(f"grasp_target {grasp_target!r} (one of {', '.join(GRASP_TARGETS)})")
+    if grasp_target == "obstacle":
+        return problem.primitives(cylinder_slabs)
+    return problem.primitives(cylinder_slabs, without=grasped_object(problem, grasp_points(robot, [problem.goal])[0]))
 
 
 # -- reading MoveIt's YAML ------------------------------------------------------------------------------------
@@ -452,10 +522,13 @@ def _family_done(out: Path, fam: str, index: dict) -> bool:
 
 
 # -- validity of the starts and goals under mpd's checker ---------------------------------------------------------
-def endpoint_validity(imported: Imported, family: str, cylinder_slabs: int = CYLINDER_SLABS) -> dict[str, np.ndarray]:
+def endpoint_validity(
+    imported: Imported, family: str, cylinder_slabs: int = CYLINDER_SLABS, grasp_target: str = "obstacle"
+) -> dict[str, np.ndarray]:
     """Per problem of a family, whether its start and goal are valid under mpd's ground-truth checker (the sphere
     model against the problem's scene, self collision, mpd's joint limits) and why not: arrays of shape (n,) for
-    ``start_valid``, ``goal_valid`` and, per end, ``*_env_free``, ``*_self_free``, ``*_within_limits``."""
+    ``start_valid``, ``goal_valid`` and, per end, ``*_env_free``, ``*_self_free``, ``*_within_limits``.
+    ``grasp_target``: the grasped object an obstacle (``"obstacle"``) or left out of the scene (``"ignored"``)."""
     import torch
 
     from mpd.collision import CollisionChecker
@@ -465,7 +538,8 @@ def endpoint_validity(imported: Imported, family: str, cylinder_slabs: int = CYL
     base = task.env()
     out: dict[str, list[bool]] = {}
     for p in imported.problems(family):
-        chk = CollisionChecker(task, env=base.with_obstacles(p.primitives(cylinder_slabs)))
+        prims = scene_primitives(p, task.robot, grasp_target, cylinder_slabs)
+        chk = CollisionChecker(task, env=base.with_obstacles(prims))
         q = torch.tensor([p.start, p.goal], dtype=torch.float64)
         v = chk.configs(q)
         for k, end in enumerate(("start", "goal")):
