@@ -1,6 +1,6 @@
 """MotionBenchMaker's Panda problems: the import (counts, stored form, frames), the validity of starts and goals under
-mpd's checker, the RRTConnect baseline (resumable) and its OMPL benchmark database, read back by Planner Arena's
-own loader."""
+mpd's checker (the grasped object an obstacle or left out), the RRTConnect baseline (resumable) and its OMPL
+benchmark database, read back by Planner Arena's own loader."""
 
 from __future__ import annotations
 
@@ -38,6 +38,10 @@ GOALS_VALID = {
     "bookshelf_thin": 100,
     "cage": 0,
 }
+
+# with the grasped object left out of the scene (grasp_target="ignored"): every box and cage goal is valid; the table
+# goals beyond mpd's joint limits and the one in the table stay invalid
+GOALS_VALID_IGNORED = {**GOALS_VALID, "box": 100, "cage": 100}
 
 
 @pytest.fixture(scope="module")
@@ -160,6 +164,35 @@ def test_starts_and_goals_under_mpds_checker(imported):
     assert not v["goal_valid"].any()
 
 
+def test_the_grasped_object_is_the_querys_candidate_at_the_grasp_point(imported):
+    """MBM's queries name the candidates (Can1 on the tables and in the box, Cube1 in the cage, any can on the
+    shelves); the goal's grasp point picks one, and leaving it out removes its primitives and no others."""
+    from mpd.tasks import load_task
+
+    robot = load_task(imported.task_path("cage")).robot
+    for fam, expected in (("box", {"Can1"}), ("cage", {"Cube1"}), ("bookshelf_small", {"Can2", "Can3"})):
+        ps = imported.problems(fam)
+        names = {mbm.grasped_object(p, x) for p, x in zip(ps, mbm.grasp_points(robot, [p.goal for p in ps]))}
+        assert names == expected, fam
+    (p,) = [p for p in imported.problems("bookshelf_small") if p.index == 1]
+    full = mbm.scene_primitives(p, robot)
+    kept = mbm.scene_primitives(p, robot, "ignored")
+    target = mbm.grasped_object(p, mbm.grasp_points(robot, [p.goal])[0])
+    assert [q.name for q in full if not q.name.startswith(f"{target}#")] == [q.name for q in kept]
+    assert len(full) - len(kept) == mbm.CYLINDER_SLABS
+    with pytest.raises(ValueError, match="grasp_target"):
+        mbm.scene_primitives(p, robot, "attached")
+
+
+def test_with_the_grasped_object_left_out_every_box_and_cage_goal_is_valid(imported):
+    for fam in ("box", "cage"):
+        strict = mbm.endpoint_validity(imported, fam)
+        loose = mbm.endpoint_validity(imported, fam, grasp_target="ignored")
+        assert int(strict["goal_valid"].sum()) == GOALS_VALID[fam], fam  # the default is the strict reading
+        assert int(loose["goal_valid"].sum()) == GOALS_VALID_IGNORED[fam] == 100, fam
+        assert loose["start_valid"].all()
+
+
 # the queries Planner Arena's loader (plannerarena.database.load_database) runs
 ARENA_TABLES = ("experiments", "plannerConfigs", "enums", "runs", "progress")
 
@@ -174,6 +207,8 @@ def _baseline(imported, out):
 
 
 def test_rrtconnect_results_resume_and_open_as_an_ompl_benchmark_database(imported, tmp_path):
+    from mpd.data.planning import problem_seed
+
     mbm_run, recs = _baseline(imported, tmp_path)
     assert [(r["family"], r["index"], r["status"]) for r in recs] == [
         ("bookshelf_small", 1, "ok"),
@@ -200,6 +235,24 @@ def test_rrtconnect_results_resume_and_open_as_an_ompl_benchmark_database(import
     ]  # fmt: skip
     assert cols["runs"][:3] == ["id", "experimentid", "plannerid"] and "solved" in cols["runs"]
     assert [row[1] for row in tables["experiments"]] == ["mbm_panda_bookshelf_small", "mbm_panda_cage"]
+    # what the runs planned on, their OMPL, seed and time limit: in the table and in the sidecar
+    from mpd.provenance import cpu_model
+
+    exp = dict(zip(cols["experiments"], tables["experiments"][0]))
+    assert (exp["cpuinfo"], exp["version"], exp["seed"], exp["timelimit"]) == (cpu_model(), "OMPL 2.0.1", "0", 5.0)
+    assert exp["grasp_target"] == "obstacle" and "seeds problem_seed" in exp["setup"]
+    side = json.loads((tmp_path / mbm_run.SIDECAR).read_text())
+    assert (side["cpus"], side["ompl"], side["seed"], side["time_limit_s"]) == ([cpu_model()], ["2.0.1"], 0, 5.0)
+    assert side["families"]["cage"] == {
+        "problems": 1, "solved": 0, "valid_mpd": 0, "timeout": 0, "invalid_start": 0, "invalid_goal": 1,
+    }  # fmt: skip
+    # one entry per invocation that planned (one per family here); the rerun found nothing to do and added none
+    invocations = mbm_run.read_provenance(tmp_path)
+    assert [i["problems"] for i in invocations] == [2, 1]
+    assert all(i["cpu"] == cpu_model() and i["ompl"] == "2.0.1" and i["finished"] for i in invocations)
+    assert [r["seed"] for r in recs] == [
+        problem_seed("mbm", 0, name) for name in ("bookshelf_small/0001", "bookshelf_small/0002", "cage/0001")
+    ]
     assert [row[1] for row in tables["plannerConfigs"]] == ["geometric_RRTConnect"]
     assert len(tables["runs"]) == 3 and tables["progress"] == []
     statuses = dict(conn.execute("SELECT value, description FROM enums WHERE name = 'status'").fetchall())
@@ -214,7 +267,7 @@ def test_rrtconnect_results_resume_and_open_as_an_ompl_benchmark_database(import
     database = pytest.importorskip("plannerarena.database", reason="plannerarena (the dev extra) is not installed")
     data = database.load_database(db)
     assert data["problem_names"] == ["mbm_panda_bookshelf_small", "mbm_panda_cage"]
-    assert data["parameters"] == ["family"]
+    assert data["parameters"] == ["family", "grasp target"]
     assert {"time", "solved", "status", "solution length", "correct solution"} <= set(data["attributes"])
     runs = data["runs"]
     assert runs.height == 3 and set(runs["planner"].cast(str).to_list()) == {"RRTConnect"}
@@ -229,6 +282,16 @@ def test_a_goal_beyond_mpds_joint_limits_is_rejected_before_planning(imported):
     (p,) = [p for p in imported.problems("table_pick") if p.index == 31]
     rec = mbm_run.run_problem(imported, "table_pick", p, mbm_run.BaselineSettings(time_limit=30.0))
     assert (rec["status"], rec["success"], rec["time_first_s"]) == ("invalid_goal", False, None)
+
+
+def test_rrtconnect_with_the_grasped_object_left_out_plans_a_cage_goal(imported):
+    from mpd.experiments import mbm as mbm_run
+
+    (p,) = [p for p in imported.problems("cage") if p.index == 1]
+    rec = mbm_run.run_problem(imported, "cage", p, mbm_run.BaselineSettings(time_limit=5.0, grasp_target="ignored"))
+    assert (rec["status"], rec["success"], rec["valid_mpd"], rec["left_out"]) == ("ok", True, True, "Cube1")
+    with pytest.raises(ValueError, match="grasp_target"):
+        mbm_run.BaselineSettings(grasp_target="attached")
 
 
 def test_database_rejects_what_ompl_cannot_read(tmp_path):
@@ -251,6 +314,9 @@ def test_cli_import(tmp_path, monkeypatch):
     assert res.exit_code == 0, res.output
     rows = {line.split()[0]: line.split()[1:] for line in res.output.splitlines()[2:]}
     assert rows == {"cage": ["100", "100", "0", "100", "0"], "bookshelf_small": ["100", "100", "100", "0", "0"]}
+    res = CliRunner().invoke(cli, ["bench", "mbm", "import", "--families", "cage", "--grasp-target", "ignored"])
+    assert res.exit_code == 0, res.output
+    assert res.output.splitlines()[2].split() == ["cage", "100", "100", "100", "0", "0"]
     res = CliRunner().invoke(cli, ["bench", "mbm", "import", "--families", "kitchen"])
     assert res.exit_code == 2 and "unknown families" in res.output
 
