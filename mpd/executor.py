@@ -12,7 +12,6 @@ serial executor sets this process's threads for its run and restores them after.
 from __future__ import annotations
 
 import os
-import queue as queue_mod
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -115,14 +114,12 @@ def _pool(fn, items: Iterator[tuple], workers: int, n: int | None, progress, nam
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     ctx = mp.get_context("spawn")  # no fork: torch's thread pools and PyBullet do not survive it
-    messages = ctx.Queue() if progress is not None else None
+    # written straight to the pipe (no feeder thread): an item's messages are there before its result
+    messages = ctx.SimpleQueue() if progress is not None else None
 
     def drain() -> None:
-        while messages is not None:
-            try:
-                progress(messages.get_nowait())
-            except queue_mod.Empty:
-                return
+        while messages is not None and not messages.empty():
+            progress(messages.get())
 
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(n, messages))
     try:
