@@ -11,13 +11,13 @@ import logging
 import os
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
+from mpd.executor import imap
 from mpd.experiments import artifacts
 from mpd.experiments.results import RowStore, read_results, write_json, write_parquet
 from mpd.experiments.spec import Cell, Spec
@@ -314,11 +314,12 @@ class Runner:
         try:
             if self.executor == "ray":
                 self._execute_ray(units, done)
-            elif self.workers == 1:
-                for u in units:
-                    done(run_unit(u))
             else:
-                self._execute_pool(units, done)
+                # serial: this process's threads as they are (`mpd run --threads`); a pool: one thread per worker
+                serial = self.workers == 1
+                mode, threads = ("serial", None) if serial else ("process", 1)
+                for _, res in imap(run_unit, [(u,) for u in units], mode, self.workers, threads, name=_unit_name):
+                    done(res)
         finally:
             bar.close()
 
@@ -330,25 +331,6 @@ class Runner:
             self.recorder(self.run_dir, str(self.spec.task_file(res.row["task"])), res.row, res.history)
         except Exception as e:  # a recording must never cost the run its results
             log.warning("recording of %s context %s failed: %s", res.cell_key, res.row["context_index"], e)
-
-    def _execute_pool(self, units: list[Unit], done) -> None:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("spawn")  # fork after torch/OpenMP started threads can deadlock
-        with ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init) as pool:
-            pending = set()
-            it = iter(units)
-            for u in it:
-                pending.add(pool.submit(run_unit, u))
-                if len(pending) >= 2 * self.workers:
-                    break
-            while pending:
-                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for f in finished:
-                    done(f.result())
-                    nxt = next(it, None)
-                    if nxt is not None:
-                        pending.add(pool.submit(run_unit, nxt))
 
     def _execute_ray(self, units: list[Unit], done) -> None:
         import ray
@@ -362,14 +344,10 @@ class Runner:
             if u.model_path and u.model_path not in blobs:
                 data = Path(u.model_path).read_bytes()
                 blobs[u.model_path] = (u.provenance.get("model_hash", ""), [ray.put(data)])
-        remote = ray.remote(num_cpus=1, max_retries=3)(_ray_unit)
-        pending = [remote.remote(u, blobs.get(u.model_path)) for u in units]
-        while pending:
-            finished, pending = ray.wait(pending, num_returns=1)
-            for f in finished:
-                res, node = ray.get(f)
-                self.unit_nodes[node] = self.unit_nodes.get(node, 0) + 1
-                done(res)
+        items = [(u, blobs.get(u.model_path)) for u in units]
+        for _, (res, node) in imap(_ray_unit, items, "ray", self.workers, address=self.address, name=_unit_name):
+            self.unit_nodes[node] = self.unit_nodes.get(node, 0) + 1
+            done(res)
 
     def _ray_nodes(self, resolved: dict) -> dict:
         """Which Ray node did what: dataset chunks (from the chunks' records), trainings (the models' metas) and
@@ -390,12 +368,9 @@ class Runner:
         return {"dataset_chunks": chunks, "trainings": trainings, "units": dict(self.unit_nodes)}
 
 
-def _worker_init() -> None:
-    import torch
-
-    # one thread per worker: two workers x two threads on two cores is 5-10x slower (oversubscription)
-    torch.set_num_threads(1)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+def _unit_name(item: tuple) -> str:
+    unit = item[0]
+    return f"cell {unit.cell_key} context {unit.context_index}"
 
 
 _VERIFIED_MODELS: dict[str, str] = {}  # driver's model path -> the path of the same file on this worker
@@ -406,7 +381,6 @@ def _ray_unit(unit: Unit, blob: tuple[str, list] | None = None) -> tuple[UnitRes
     cache (the cache is not shared) is written into this worker's cache from the object store, checked by sha256."""
     from mpd import distributed
 
-    _worker_init()
     if unit.model_path and blob is not None:
         unit.model_path = _model_here(unit.model_path, *blob)
     return run_unit(unit), distributed.node_id()
