@@ -596,3 +596,60 @@ def test_a_run_folder_losing_its_files_reports_what_is_left_or_fails_in_one_line
         with monkeypatch.context() as m:
             r = _mpd_in_process(root, argv, m, capsys)
         assert_one_line_error(r, names)
+
+
+@pytest.mark.slow  # two runs, each generating and training (~1 min on 2 cores)
+def test_two_runs_of_overlapping_specs_on_one_cache_at_once(made, tmp_path):
+    """Two `mpd run` of specs that need the same dataset and model, started together on one empty cache: both
+    finish, the dataset is the one a single generation writes (byte for byte), one model is trained (the second run
+    waits for the first's), and the cells both runs have give the same rows."""
+    from mpd.experiments.results import read_results
+
+    root0, d, _ = made
+    root = tmp_path / "two ü"
+    root.mkdir()
+    (root / "tiny.toml").write_text(d.read_text())
+
+    def spec(name: str, methods: str) -> Path:
+        p = root / f"{name}.toml"
+        p.write_text(
+            textwrap.dedent(f"""
+            name = "{name}"
+            n_contexts = 2
+            n_samples = 8
+            record_contexts = 0
+            [axes]
+            task = ["{TASK}"]
+            method = [{methods}]
+            "training.steps" = [20]
+            [tasks."{TASK}"]
+            dataset = "{root / "tiny.toml"}"
+            """)
+        )
+        return p
+
+    a, b = spec("a", '"gp-cost", "dprior"'), spec("b", '"dprior"')
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "mpd.cli", "run", str(s), "--run-dir", str(root / "runs" / s.stem)],
+            cwd=REPO,
+            env=_env(root),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        for s in (a, b)
+    ]
+    for p in procs:
+        out, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err[-2000:]
+    ref = {p.relative_to(root0): p.read_bytes() for p in (root0 / "cache" / "datasets").rglob("*.npz")}
+    got = {p.relative_to(root): p.read_bytes() for p in (root / "cache" / "datasets").rglob("*.npz")}
+    assert got == ref
+    assert len(list((root / "cache" / "models").rglob("model.pt"))) == 1
+    assert not list((root / "cache").rglob("*.tmp-*"))
+    cols = ["context_index", "fraction_valid", "success", "path_length", "model_id"]
+    ra, rb = read_results(root / "runs" / "a"), read_results(root / "runs" / "b")
+    da = ra[ra["method"] == "dprior"].sort_values("context_index")[cols].reset_index(drop=True)
+    db = rb[rb["method"] == "dprior"].sort_values("context_index")[cols].reset_index(drop=True)
+    assert len(da) == 2 and da.equals(db)  # NaN (no valid path) equals NaN here
