@@ -653,3 +653,24 @@ def test_two_runs_of_overlapping_specs_on_one_cache_at_once(made, tmp_path):
     da = ra[ra["method"] == "dprior"].sort_values("context_index")[cols].reset_index(drop=True)
     db = rb[rb["method"] == "dprior"].sort_values("context_index")[cols].reset_index(drop=True)
     assert len(da) == 2 and da.equals(db)  # NaN (no valid path) equals NaN here
+
+
+def test_a_held_artifact_lock_makes_another_process_wait_until_it_is_released(tmp_path):
+    """mpd.locks.hold: a second process of the same artifact says it waits and goes on only when the first lets go
+    (a real flock between two processes, as between two `mpd run` of one dataset)."""
+    from mpd import locks
+
+    folder = tmp_path / "ds ü" / "tiny-0123"
+    held = locks.hold(folder)
+    code = (
+        "import sys, time; from pathlib import Path; from mpd import locks; t = time.monotonic(); "
+        "f = locks.hold(Path(sys.argv[1]), lambda: print('waiting', flush=True)); "
+        "print(f'got {time.monotonic() - t:.2f}', flush=True)"
+    )
+    p = subprocess.Popen([sys.executable, "-c", code, str(folder)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "waiting"
+    time.sleep(1.0)
+    assert p.poll() is None  # still waiting
+    held.close()
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 0 and out.startswith("got ") and float(out.split()[1]) >= 1.0

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mpd import locks
 from mpd.data.definition import GENERATOR_VERSION, ResolvedDefinition, load_definition
 from mpd.data.storage import (
     chunk_name,
@@ -275,6 +276,16 @@ def generate(
     """
     rd = name_or_path if isinstance(name_or_path, ResolvedDefinition) else load_definition(name_or_path)
     say = log or (lambda m: print(m, file=sys.stderr))
+    # one generation of a dataset at a time on a cache: a second process (another `mpd run` of a spec that needs the
+    # same dataset) waits, then finds the chunks made and computes nothing again
+    held = locks.hold(rd.data_dir, lambda: say(f"{rd.name}: another process is generating it; waiting"))
+    try:
+        return _generate(rd, say, workers, progress, chunks, create_lock, executor, address)
+    finally:
+        held.close()
+
+
+def _generate(rd, say, workers, progress, chunks, create_lock, executor, address) -> dict:
     d = rd.definition
     rd.data_dir.mkdir(parents=True, exist_ok=True)
     clean_stale_temporaries(rd.data_dir)

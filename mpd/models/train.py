@@ -30,6 +30,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from mpd import locks
 from mpd.device import default_device, synchronize, training_arithmetic
 from mpd.models.checkpoint import (
     FORMAT,
@@ -429,7 +430,7 @@ def train_model(
     # One process per identity: a second `mpd train` (or run) of this model waits here for the first and then finds
     # its model.pt instead of training it again. The lock is released when `held` is closed (on return, or when the
     # process dies: a kill -9 leaves no stale lock).
-    held = _lock_identity(out)
+    held = locks.hold(out)
     if final_path.is_file():
         held.close()
         return final_path
@@ -623,17 +624,6 @@ def train_model(
     save_atomic(final, final_path)
     last_path.unlink(missing_ok=True)  # the final file supersedes it (a longer run is another identity)
     return final_path
-
-
-def _lock_identity(out: Path):
-    """An exclusive ``fcntl.flock`` on ``<out>.lock`` beside the model's folder, held while the returned file is
-    open."""
-    import fcntl
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    f = open(out.parent / f".{out.name}.lock", "a")  # noqa: SIM115 (held open: the lock lives as long as the file)
-    fcntl.flock(f, fcntl.LOCK_EX)
-    return f
 
 
 def _shipped_eager(task_name: str, kind: str, parametrization: str, identity: str) -> bool:
