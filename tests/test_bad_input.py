@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from tiny import tiny_definition
 
 from mpd.schema import ConfigError
 
@@ -46,24 +47,7 @@ def assert_one_line_error(r: subprocess.CompletedProcess, names: str) -> None:
     assert names in last, (r.args, last)
 
 
-def _definition(path: Path, name: str = "tiny", n: int = 32, chunk: int = 16, **extra: str) -> Path:
-    body = textwrap.dedent(f"""
-        name = "{name}"
-        task = "{TASK}"
-        n_contexts = {n}
-        seed = 0
-        chunk_size = {chunk}
-        [checker]
-        kind = "spheres"
-        [split]
-        val = 0.3
-        test = 0.5
-        """)
-    for k, v in extra.items():
-        body = body.replace(f"\n{k} = ", f"\n{k} = {v}  # ", 1)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(body)
-    return path
+_definition = tiny_definition
 
 
 # (argv, text the error's last line names); each runs in a fresh subprocess. Cases that once needed a fix are marked.

@@ -17,30 +17,13 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import torch
+from tiny import tiny_definition
 
 pytestmark = pytest.mark.ray
 
 REPO = Path(__file__).resolve().parents[1]
 TASK = "EnvSimple2D-RobotPointMass2D"
 METRICS = ["success", "fraction_valid", "vendi", "path_length", "smoothness", "best_index"]
-
-
-def _definition(path: Path, name: str, task: str, n: int, chunk: int) -> Path:
-    path.write_text(
-        textwrap.dedent(f"""
-        name = "{name}"
-        task = "{task}"
-        n_contexts = {n}
-        seed = 0
-        chunk_size = {chunk}
-        [checker]
-        kind = "spheres"
-        [split]
-        val = 0.3
-        test = 0.5
-        """)
-    )
-    return path
 
 
 def _spec(root: Path, definition: Path) -> Path:
@@ -76,7 +59,7 @@ def test_a_spec_runs_data_training_and_planning_on_a_two_node_cluster(tmp_path, 
 
     monkeypatch.setenv("MPD_PRIORS", "none")
     monkeypatch.setenv("MPD_RUNS", str(tmp_path / "runs"))
-    spec = _spec(tmp_path, _definition(tmp_path / "c.toml", "c", TASK, 64, 16))  # 4 chunks
+    spec = _spec(tmp_path, tiny_definition(tmp_path / "c.toml", "c", TASK, 64, 16))  # 4 chunks
 
     monkeypatch.setenv("MPD_CACHE", str(tmp_path / "local"))
     Runner(load_spec(spec), run_dir=tmp_path / "runs" / "local", progress=False).run()
@@ -141,7 +124,7 @@ def test_a_ray_worker_killed_during_a_chunk_loses_nothing_finished(tmp_path, mon
     from mpd.data.generate import generate
 
     # NarrowPassage: a few planned paths per second, so that a chunk is still running when the kill comes
-    defn = _definition(tmp_path / "k.toml", "k", "EnvNarrowPassageDense2D-RobotPointMass2D", 48, 4)  # 12 chunks
+    defn = tiny_definition(tmp_path / "k.toml", "k", "EnvNarrowPassageDense2D-RobotPointMass2D", 48, 4)  # 12 chunks
     env = {**os.environ, "MPD_CACHE": str(tmp_path / "ray"), "PYTHONPATH": str(REPO), "MPD_PRIORS": "none"}
     cmd = [sys.executable, "-m", "mpd.cli", "data", "generate", str(defn), "--executor", "ray", "--workers", "2", "-q"]
     log = tmp_path / "generate.log"
