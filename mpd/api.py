@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from mpd.envs.primitives import Primitive, quat_wxyz_to_matrix
-from mpd.planners.inputs import PlanningInputError, as_array, check_configuration
+from mpd.planners.inputs import PlanningInputError, as_array, check_configuration, shape_of
 
 # The network path a planner of the API runs by default: compiled (torch.compile, frozen weights) in bf16 where the
 # device computes it natively, else fp32 (PlannerSettings.network_precision = "auto"). Each batch size compiles once
@@ -175,6 +175,10 @@ class MotionPlanner:
             return []
         if isinstance(obstacles, (Sphere, Box)):
             obstacles = [obstacles]
+        if not isinstance(obstacles, (list, tuple)):
+            raise PlanningInputError(
+                "obstacles", f"is a {type(obstacles).__name__}, expected a list of mpd.Sphere and mpd.Box"
+            )
         D = self.task.dim
         prims = []
         for i, o in enumerate(obstacles):
@@ -199,7 +203,8 @@ class MotionPlanner:
         D = self.task.dim
         if rot is None:
             return np.eye(D)
-        a = np.asarray(rot, dtype=np.float64) if not isinstance(rot, torch.Tensor) else rot.double().numpy()
+        shape = shape_of(rot)
+        a = as_array(rot, f"{name}.rotation", shape if shape and len(shape) in (1, 2) else (D, D))
         if a.shape == (4,) and D == 3:
             q = as_array(a, f"{name}.rotation", (4,))
             if np.linalg.norm(q) < 1e-9:
@@ -213,7 +218,8 @@ class MotionPlanner:
     def _goal(self, goal) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
         """(goal configuration or None, goal position or None, goal rotation or None)."""
         dof = self.dof
-        if isinstance(goal, Pose) or (not isinstance(goal, Pose) and np.shape(goal) == (4, 4)):
+        shape = shape_of(goal)
+        if isinstance(goal, Pose) or shape == (4, 4):
             if not self.task.ee_goal:
                 raise PlanningInputError(
                     "goal", f"task {self.task.name} takes a joint configuration ({dof} values), not a pose"
@@ -229,11 +235,12 @@ class MotionPlanner:
             if not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
                 raise PlanningInputError("goal", "a 4x4 goal must be a homogeneous transform (rotation, last row 0001)")
             return None, m[:3, 3].copy(), r.copy()
-        if np.shape(goal) != (dof,):
+        if shape != (dof,):
             kind = f"a joint configuration ({dof} values)" + (
                 ", an mpd.Pose or a 4x4 transform" if self.task.ee_goal else ""
             )
-            raise PlanningInputError("goal", f"has shape {np.shape(goal)}, expected {kind}")
+            got = f"has shape {shape}" if shape is not None else f"{goal!r} is not an array of numbers"
+            raise PlanningInputError("goal", f"{got}, expected {kind}")
         return as_array(goal, "goal", (dof,)), None, None
 
     def scene(self, obstacles=None):

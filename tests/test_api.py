@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import mpd
 from mpd.collision import CollisionChecker
@@ -180,3 +182,87 @@ def test_every_method_plans_through_the_api():
         r = p.plan(START, GOAL, n_samples=3, seed=0, obstacles=[mpd.Sphere([0.0, 0.05], 0.15)])
         assert r.q.shape[0] == 3 and r.provenance["method"] == method
         assert (r.provenance["model_identity"] is None) == (p.model is None)
+
+
+class _ReachedPlanning(Exception):
+    """Raised where the planner would start working: the input was accepted."""
+
+
+# anything a caller might pass for an array argument: numbers of every kind, wrong shapes, strings, None, nested junk
+_NUMBER = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True, width=64),
+    st.integers(-(10**20), 10**20),
+    st.sampled_from([0.0, 0.5, -0.5, 1e-12, True]),
+)
+_JUNK = st.one_of(st.none(), st.text(max_size=3), st.just(object()), st.just({"a": 1}))
+_VECTOR = st.one_of(
+    st.lists(_NUMBER, min_size=0, max_size=8),
+    st.lists(st.lists(_NUMBER, min_size=1, max_size=4), min_size=1, max_size=3),  # a matrix
+    st.builds(lambda v: np.asarray(v, dtype=np.float64), st.lists(_NUMBER, min_size=1, max_size=8)),
+    _JUNK,
+)
+_OBSTACLE = st.one_of(
+    st.builds(mpd.Sphere, _VECTOR, st.one_of(_NUMBER, _JUNK)),
+    st.builds(mpd.Box, _VECTOR, _VECTOR, st.one_of(st.none(), _VECTOR)),
+    _JUNK,
+    _VECTOR,
+)
+
+
+_VALID_OBSTACLES = st.lists(
+    st.one_of(
+        st.builds(mpd.Sphere, st.lists(st.floats(-0.9, 0.9), min_size=2, max_size=2), st.floats(0.01, 0.1)),
+        st.builds(
+            mpd.Box,
+            st.lists(st.floats(-0.9, 0.9), min_size=2, max_size=2),
+            st.lists(st.floats(0.01, 0.1), min_size=2, max_size=2),
+        ),
+    ),
+    max_size=2,
+)
+_ARGUMENTS = ("q_start", "goal", "obstacles", "n_samples", "seed")
+_BAD = {
+    "q_start": _VECTOR,
+    "goal": st.one_of(_VECTOR, st.builds(mpd.Pose, _VECTOR, _VECTOR), st.just(np.eye(4))),
+    "obstacles": st.one_of(st.lists(_OBSTACLE, min_size=1, max_size=3), _JUNK, _NUMBER),
+    "n_samples": st.one_of(st.integers(-3, 0), _NUMBER, _JUNK),
+    "seed": st.one_of(st.integers(-3, -1), _NUMBER, _JUNK),
+}
+
+
+@given(data=st.data(), bad=st.sets(st.sampled_from(_ARGUMENTS), max_size=2))
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_any_input_is_planned_or_refused_in_one_line_naming_the_argument(planner, data, bad):
+    """Hypothesis throws arbitrary values at every argument of ``plan``: each call either reaches the planner or raises
+    PlanningInputError naming one of the arguments in one line, never another exception."""
+    orig = planner._planner.plan
+
+    def reached(*a, **k):
+        raise _ReachedPlanning
+
+    good = {"q_start": st.just(START), "goal": st.just(GOAL), "obstacles": st.one_of(st.none(), _VALID_OBSTACLES)}
+    good |= {"n_samples": st.integers(1, 4), "seed": st.integers(0, 5)}
+    args = {a: data.draw(_BAD[a] if a in bad else good[a], label=a) for a in _ARGUMENTS}
+    given_args = dict(args)
+    planner._planner.plan = reached
+    try:
+        planner.plan(args.pop("q_start"), args.pop("goal"), **args)
+    except _ReachedPlanning:
+        # accepted: then every argument is one a plan can use (a value drawn as "bad" may happen to be a good one)
+        for name in ("q_start", "goal"):
+            value = np.asarray(given_args[name], dtype=float)
+            assert value.shape == (2,) and np.isfinite(value).all(), (name, given_args[name])
+        for name, least in (("n_samples", 1), ("seed", 0)):
+            value = given_args[name]
+            assert isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= least, (
+                name,
+                value,
+            )
+    except mpd.PlanningInputError as e:
+        msg = str(e)
+        # the argument named is one drawn bad, or the start or goal put in collision by the obstacles
+        blamable = bad | ({"q_start", "goal"} if given_args["obstacles"] else set())
+        assert e.argument.split("[")[0].split(".")[0] in blamable, (msg, bad)
+        assert msg.startswith(f"{e.argument}: ") and "\n" not in msg and "np.float64(" not in msg, msg
+    finally:
+        planner._planner.plan = orig

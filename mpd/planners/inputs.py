@@ -22,13 +22,21 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}"
 
 
+def shape_of(value: Any) -> tuple[int, ...] | None:
+    """The array shape of ``value``, or None where it is not one (a ragged list, an object numpy cannot read)."""
+    try:
+        return tuple(np.shape(value))
+    except (TypeError, ValueError):
+        return None
+
+
 def as_array(value: Any, argument: str, shape: tuple[int, ...]) -> np.ndarray:
     """``value`` as a finite float64 array of exactly ``shape`` (a list, tuple, numpy array or tensor)."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().double().numpy()
     try:
         a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise PlanningInputError(argument, f"{value!r} is not an array of numbers") from None
     if a.shape != shape:
         want = "x".join(str(s) for s in shape) or "a scalar"
