@@ -49,9 +49,13 @@ def _venv(session: nox.Session, extras: str = "dev,ray,mlflow") -> Path:
 
 @nox.session(venv_backend="none")
 def tests(session: nox.Session) -> None:
-    """Run the test suite (fast by default; `-- -m slow` for the slow ones)."""
+    """Run the test suite (fast by default; `-- -m slow` for the slow ones), over one pytest-xdist worker per core
+    (each pinned to one thread by tests/conftest.py); `-- -n 0` runs it in one process."""
     b = _venv(session)
-    session.run(str(b / "python"), "-m", "pytest", *(session.posargs or ["-q"]), external=True)
+    args = list(session.posargs or ["-q"])
+    if not any(a == "-n" or a.startswith(("-n", "--numprocesses")) or a == "no:xdist" for a in args):
+        args = ["-n", "auto", "--dist", "loadgroup", *args]
+    session.run(str(b / "python"), "-m", "pytest", *args, external=True)
 
 
 LINT_PATHS = ("mpd", "tests", "benchmarks", "reports", "noxfile.py")  # reports/: the reports' analysis scripts

@@ -10,6 +10,12 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # spec runs and the Python API compile the diffusion network by default (~20-60 s per batch size on 2 cores); the
 # tests run it eager unless they ask for the compiled one (test_experiments, test_models, test_planners, test_api)
 os.environ.setdefault("MPD_COMPILE", "0")
+# under pytest-xdist (the CI runs `-n 2`) each worker is one of two processes on a 2-core machine: one thread each, for
+# torch here and for the subprocesses the tests start (two workers of 2 threads each run many times slower than 1 each)
+XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+if XDIST_WORKER:
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -24,6 +30,22 @@ TASKS = (
     "EnvWarehouse-RobotPanda",
 )
 ROBOTS = ("RobotPointMass2D", "RobotPlanar2Link", "RobotPlanar4Link", "RobotPanda")
+
+if XDIST_WORKER:
+    torch.set_num_threads(1)
+
+# the files that start Ray (a local instance or a two-node cluster) run one after the other on one xdist worker
+# (`--dist loadgroup`): two Ray instances at once would compete for the machine's two cores and the default ports
+RAY_FILES = {"test_executor.py", "test_experiments.py", "test_ray_cluster.py"}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Each test file is one xdist group (its module fixtures built once, on one worker); the Ray files are one."""
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    for item in items:
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group("ray" if name in RAY_FILES else name))
 
 
 @pytest.fixture(autouse=True)
