@@ -24,7 +24,7 @@ import pytest
 import torch
 from cpu_peak import peak_gflops
 
-from mpd.device import training_arithmetic
+from mpd.device import Arithmetic, resolve, training_request
 from mpd.models.compiled_step import CompiledStep, cxx_available
 from mpd.models.context import context_shapes
 from mpd.models.train import EagerStep, _Data, _init_network, make_optimizer, training_loss_kwargs
@@ -70,14 +70,14 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-def _stepper(mode: str, spec, ts, shapes, bf16: bool):
+def _stepper(mode: str, spec, ts, shapes, arithmetic: Arithmetic):
     net = _init_network("diffusion", shapes, spec, 0).train()
     ema = copy.deepcopy(net).requires_grad_(False)
     opt = make_optimizer(net, ts)
     gen = torch.Generator().manual_seed(0)
     kw = training_loss_kwargs("diffusion", ts, torch.device("cpu"))
     cls = EagerStep if mode == "eager" else CompiledStep
-    return cls("diffusion", net, ema, opt, gen, ts, kw, bf16), gen
+    return cls("diffusion", net, ema, opt, gen, ts, kw, arithmetic), gen
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -87,9 +87,9 @@ def test_training_step_eager_vs_compiled(benchmark, case):
     if not cxx_available():
         pytest.skip("torch.compile's CPU backend needs a C++ compiler")
     task, spec, ts, data, shapes = _setup(case)
-    arithmetic = training_arithmetic(ts.precision, torch.device("cpu"))
-    bf16 = arithmetic == "bf16"
-    steppers = {m: _stepper(m, spec, ts, shapes, bf16) for m in MODES}
+    arith = resolve("cpu", training_request(ts.precision))
+    arithmetic = arith.dtype
+    steppers = {m: _stepper(m, spec, ts, shapes, arith) for m in MODES}
     times: dict[str, list[float]] = {m: [] for m in MODES}
     counter = [ts.ema_start]  # past the EMA's start: its lerps every ema_every steps, as in most of a training
 

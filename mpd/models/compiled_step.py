@@ -63,7 +63,7 @@ class CompiledStep(EagerStep):
         self._loss_fn = torch.compile(self._loss, dynamic=False)
 
     def _loss(self, x0: torch.Tensor, context: dict[str, torch.Tensor], t: torch.Tensor, noise: torch.Tensor):
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+        with self.autocast():
             return self.net.loss_of_draws(x0, context, t, noise, **self.loss_kwargs)
 
     def loss(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int) -> torch.Tensor:

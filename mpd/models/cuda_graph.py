@@ -15,11 +15,11 @@ Only the diffusion loss is captured (the CVAE's KL warm-up weight is a Python fl
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import torch
 
+from mpd.device import resolve
 from mpd.models.step import StepBody, ema_weight
 
 __all__ = ["EAGER_STEPS", "GraphedStep", "ema_weight", "graph_supported"]
@@ -29,12 +29,7 @@ EAGER_STEPS = 3  # steps run eagerly (on a side stream) before the capture: the 
 
 def graph_supported(kind: str, device: torch.device) -> bool:
     """Whether a training of ``kind`` on ``device`` is captured by default."""
-    return (
-        kind == "diffusion"
-        and device.type == "cuda"
-        and os.environ.get("MPD_CUDA_GRAPH", "1") != "0"
-        and hasattr(torch.cuda.CUDAGraph, "register_generator_state")
-    )
+    return kind == "diffusion" and resolve(device).cuda_graph
 
 
 class GraphedStep(StepBody):

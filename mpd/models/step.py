@@ -10,12 +10,14 @@ captures the whole step in a CUDA graph. All three run :meth:`StepBody.body` and
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
 
 import torch
 from torch import nn
 
+from mpd.device import Arithmetic
 from mpd.tasks.spec import TrainingSpec
 
 Batch = tuple[torch.Tensor, dict[str, torch.Tensor]]
@@ -52,8 +54,9 @@ def apply_ema(ema_params: Iterable[torch.Tensor], params: Iterable[torch.Tensor]
 
 
 class StepBody:
-    """The state a step works on and the body every execution mode runs: loss (under bf16 autocast when ``bf16``),
-    backward, gradient clipping, AdamW, EMA. ``draw()`` gives the next batch; ``running`` is the 0-d loss sum."""
+    """The state a step works on and the body every execution mode runs: loss (in the ``arithmetic`` of
+    :func:`mpd.device.resolve`), backward, gradient clipping, AdamW, EMA. ``draw()`` gives the next batch;
+    ``running`` is the 0-d loss sum."""
 
     autocast_cache = True  # autocast's weight cache (a captured step turns it off)
 
@@ -66,20 +69,17 @@ class StepBody:
         gen: torch.Generator,
         ts: TrainingSpec,
         loss_kwargs: dict[str, Any],
-        bf16: bool,
+        arithmetic: Arithmetic,
         draw: Callable[[], Batch] | None = None,
         running: torch.Tensor | None = None,
     ):
         self.kind, self.net, self.ema, self.opt, self.gen, self.ts = kind, net, ema, opt, gen, ts
-        self.loss_kwargs, self.bf16, self.draw, self.running = loss_kwargs, bf16, draw, running
+        self.loss_kwargs, self.arithmetic, self.draw, self.running = loss_kwargs, arithmetic, draw, running
         self.params = list(net.parameters())
         self.ema_params = list(ema.parameters())
-        self.device_type = self.params[0].device.type
 
-    def autocast(self) -> torch.autocast:
-        return torch.autocast(
-            self.device_type, dtype=torch.bfloat16, enabled=self.bf16, cache_enabled=self.autocast_cache
-        )
+    def autocast(self) -> contextlib.AbstractContextManager:
+        return self.arithmetic.autocast(cache_enabled=self.autocast_cache)
 
     def loss(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int) -> torch.Tensor:
         if self.kind == "cvae" and self.ts.kl_warmup_steps > 0:

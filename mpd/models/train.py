@@ -37,7 +37,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from mpd import locks
-from mpd.device import default_device, synchronize, training_arithmetic
+from mpd.device import Arithmetic, default_device, resolve, synchronize, training_request
 from mpd.models.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
@@ -52,7 +52,7 @@ from mpd.models.checkpoint import (
 )
 from mpd.models.compiled_step import CompiledStep, compile_by_default, compile_supported
 from mpd.models.context import EE_GOAL, UNNORMALIZED_KEYS
-from mpd.models.cuda_graph import GraphedStep, graph_supported
+from mpd.models.cuda_graph import GraphedStep
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
 from mpd.models.diffusion import sampler_grid
 from mpd.models.normalizer import Normalizer
@@ -541,6 +541,7 @@ class Checkpointer:
 def _execution_mode(
     kind: str,
     device: torch.device,
+    arithmetic: Arithmetic,
     cuda_graph: bool | None,
     compile_step: bool | None,
     n_steps: int,
@@ -549,7 +550,7 @@ def _execution_mode(
     """How this call runs its steps: ``cuda_graph``, ``compiled`` or ``eager`` (see :func:`train_model`).
     ``retrain_shipped()``: whether the training retrains a shipped prior that was trained eagerly."""
     if cuda_graph is None:
-        cuda_graph = graph_supported(kind, device)
+        cuda_graph = kind == "diffusion" and arithmetic.cuda_graph
     elif cuda_graph and not (kind == "diffusion" and device.type == "cuda"):
         raise ValueError(f"cuda_graph=True: only a diffusion training on CUDA is captured, not {kind} on {device}")
     if compile_step is None:
@@ -592,7 +593,7 @@ def _make_step(
     state: TrainingState,
     ts: TrainingSpec,
     loss_kwargs: dict[str, Any],
-    bf16: bool,
+    arithmetic: Arithmetic,
     train: _Data,
 ) -> TrainingStep:
     """The step object of ``mode``: its batches drawn from ``train`` with the training's generator."""
@@ -602,7 +603,7 @@ def _make_step(
         return train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device))
 
     cls = {"cuda_graph": GraphedStep, "compiled": CompiledStep, "eager": EagerStep}[mode]
-    return cls(kind, state.net, state.ema, state.opt, gen, ts, loss_kwargs, bf16, draw, state.running)
+    return cls(kind, state.net, state.ema, state.opt, gen, ts, loss_kwargs, arithmetic, draw, state.running)
 
 
 def _run_steps(
@@ -702,14 +703,14 @@ def train_model(
         total=ts.steps, initial=state.step, unit="step", disable=not progress, dynamic_ncols=True,
         desc=f"{kind}-{arrays.parametrization} {arrays.task_name} [{identity[:8]}]", mininterval=1.0,
     )  # fmt: skip
-    arithmetic = training_arithmetic(ts.precision, device)
-    if arithmetic != ts.precision:
+    arithmetic = resolve(device, training_request(ts.precision))
+    if arithmetic.dtype != ts.precision:
         tqdm.write(
             f"{kind} {arrays.task_name}: precision bf16 trains in fp32 arithmetic here: {device} has no native bf16 "
             "(AVX512_BF16 / AMX); emulated bf16 is ~30x slower (MPD_BF16=emulate forces it)"
         )
     mode = _execution_mode(
-        kind, device, cuda_graph, compile_step, end - state.step,
+        kind, device, arithmetic, cuda_graph, compile_step, end - state.step,
         lambda: not shipped and _shipped_eager(arrays.task_name, kind, arrays.parametrization, identity),
     )  # fmt: skip
     if mode == "compiled" and progress:
@@ -717,7 +718,7 @@ def train_model(
             f"{kind} {arrays.task_name}: the training step's loss is compiled on the first step (torch.compile, "
             "1-8 min on a busy 2-core CPU, less from inductor's cache); MPD_TRAIN_COMPILE=0 trains eagerly"
         )
-    step_fn = _make_step(mode, kind, state, ts, training_loss_kwargs(kind, ts, device), arithmetic == "bf16", train)
+    step_fn = _make_step(mode, kind, state, ts, training_loss_kwargs(kind, ts, device), arithmetic, train)
     _record_execution(record, mode, _execution_record(resumed, state.step, mode), device)
 
     checkpointer = Checkpointer(claim.out, record, ts, trunk)
@@ -737,7 +738,7 @@ def train_model(
     return checkpointer.finish(
         state, elapsed,
         n_train=len(train), n_val=len(val), n_parameters=sum(p.numel() for p in state.net.parameters()),
-        device=str(device), cpu=cpu_model(), arithmetic=arithmetic, source="trained", steps=state.step,
+        device=str(device), cpu=cpu_model(), **arithmetic.record(), source="trained", steps=state.step,
         steps_per_s=(state.step - first_step) / elapsed if elapsed > 0 else None,
         final_train_loss=history[-1]["train_loss"] if history else None,
         final_val_loss=history[-1]["val_loss"] if history else None,
