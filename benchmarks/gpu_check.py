@@ -240,6 +240,7 @@ def graphed_training(device: str, batches=(512, 1024, 2048), steps: int = 100) -
 
     import torch
 
+    from mpd.device import resolve
     from mpd.models.cuda_graph import GraphedStep
     from mpd.models.diffusion import DiffusionModel
     from mpd.models.train import make_optimizer
@@ -266,7 +267,7 @@ def graphed_training(device: str, batches=(512, 1024, 2048), steps: int = 100) -
                 idx = torch.randint(n, (b,), generator=g, device=device)
                 return x[idx], {k: v[idx] for k, v in ctx.items()}
 
-            step = GraphedStep(net, ema, opt, draw, g, ts, {}, precision == "bf16", running)
+            step = GraphedStep("diffusion", net, ema, opt, g, ts, {}, resolve(device, precision), draw, running)
             for i in range(10):  # eager steps, the capture, replays
                 step(i, 1e-3)
             _sync(device)

@@ -24,7 +24,7 @@ import pytest
 import torch
 from cpu_peak import peak_gflops
 
-from mpd.device import training_arithmetic
+from mpd.device import Arithmetic, resolve, training_request
 from mpd.models.compiled_step import CompiledStep, cxx_available
 from mpd.models.context import context_shapes
 from mpd.models.train import EagerStep, _Data, _init_network, make_optimizer, training_loss_kwargs
@@ -70,15 +70,14 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-def _stepper(mode: str, spec, ts, shapes, bf16: bool):
+def _stepper(mode: str, spec, ts, shapes, arithmetic: Arithmetic):
     net = _init_network("diffusion", shapes, spec, 0).train()
     ema = copy.deepcopy(net).requires_grad_(False)
     opt = make_optimizer(net, ts)
     gen = torch.Generator().manual_seed(0)
     kw = training_loss_kwargs("diffusion", ts, torch.device("cpu"))
     cls = EagerStep if mode == "eager" else CompiledStep
-    args = ("diffusion",) if mode == "eager" else ()
-    return cls(*args, net, ema, opt, gen, ts, kw, bf16), gen
+    return cls("diffusion", net, ema, opt, gen, ts, kw, arithmetic), gen
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -88,9 +87,9 @@ def test_training_step_eager_vs_compiled(benchmark, case):
     if not cxx_available():
         pytest.skip("torch.compile's CPU backend needs a C++ compiler")
     task, spec, ts, data, shapes = _setup(case)
-    arithmetic = training_arithmetic(ts.precision, torch.device("cpu"))
-    bf16 = arithmetic == "bf16"
-    steppers = {m: _stepper(m, spec, ts, shapes, bf16) for m in MODES}
+    arith = resolve("cpu", training_request(ts.precision))
+    arithmetic = arith.dtype
+    steppers = {m: _stepper(m, spec, ts, shapes, arith) for m in MODES}
     times: dict[str, list[float]] = {m: [] for m in MODES}
     counter = [ts.ema_start]  # past the EMA's start: its lerps every ema_every steps, as in most of a training
 
@@ -98,7 +97,7 @@ def test_training_step_eager_vs_compiled(benchmark, case):
         stepper, gen = steppers[mode]
         t0 = time.perf_counter()
         xb, cb = data.batch(torch.randint(len(data), (ts.batch_size,), generator=gen))
-        loss = stepper(xb, cb, counter[0], ts.lr)
+        loss = stepper.on_batch(xb, cb, counter[0], ts.lr)
         return loss, time.perf_counter() - t0
 
     first = {m: one(m)[1] for m in MODES}  # the compiled step compiles here

@@ -1,11 +1,13 @@
-"""Device selection: CUDA when present, CPU otherwise; ``MPD_DEVICE`` overrides. And the precision the denoising
-network runs in at planning time (``PlannerSettings.network_precision``)."""
+"""Device selection: CUDA when present, CPU otherwise; ``MPD_DEVICE`` overrides. And the arithmetic networks run in
+on a device (:class:`Arithmetic`, decided by :func:`resolve`), for training (``TrainingSpec.precision``) and planning
+(``PlannerSettings.network_precision``) alike."""
 
 from __future__ import annotations
 
 import contextlib
 import functools
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -52,32 +54,74 @@ def can_compile(device: torch.device | str) -> bool:
     return any(shutil.which(n) for n in [*names, "g++", "c++", "clang++"])
 
 
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+@dataclass(frozen=True)
+class Arithmetic:
+    """The arithmetic a network runs in on a device, decided once by :func:`resolve` and used by the training step
+    and by the planners alike: ``dtype`` ``"bf16"`` (autocast: weights stay float32; matrix products and
+    convolutions in bf16 with float32 accumulation) or ``"fp32"``; ``requested`` what was asked for; ``cuda_graph``
+    whether a training step on this device may be captured in a CUDA graph (``MPD_CUDA_GRAPH=0`` turns it off)."""
+
+    device_type: str
+    requested: str
+    dtype: str
+    native_bf16: bool
+    cuda_graph: bool
+
+    @property
+    def bf16(self) -> bool:
+        return self.dtype == "bf16"
+
+    def autocast(self, cache_enabled: bool = True) -> contextlib.AbstractContextManager:
+        """The context the network's forward passes run in: bf16 autocast, or nothing for fp32. ``cache_enabled``
+        False for a step captured in a CUDA graph (the weight cache would hold the captured step's casts)."""
+        if self.bf16:
+            return torch.autocast(self.device_type, dtype=torch.bfloat16, cache_enabled=cache_enabled)
+        return contextlib.nullcontext()
+
+    def record(self) -> dict[str, str]:
+        """What an artifact records of the decision (a model's meta; a plan records it as ``network_precision``)."""
+        return {"arithmetic": self.dtype}
+
+
+def resolve(device: torch.device | str, requested: str = "auto", name: str = "precision") -> Arithmetic:
+    """The arithmetic of a network on ``device``: ``fp32``; ``bf16`` (emulated where the device has no native bf16,
+    slowly); or for ``auto`` bf16 where the device computes it natively (CUDA's own test; on a CPU AVX512_BF16 or
+    AMX) and fp32 elsewhere: without them oneDNN emulates bf16 and a training step of the profiles' networks is ~30x
+    slower (measured on an AMD EPYC Zen 3, AVX2). ``MPD_BF16=emulate`` takes bf16 for native (for tests of the bf16
+    path on any CPU). ``name`` names the setting in the error on a value other than auto, fp32 or bf16."""
+    if requested not in PRECISIONS:
+        raise ValueError(f"{name} must be auto, fp32 or bf16, got {requested!r}")
+    device = torch.device(device)
+    native = native_bf16(device)
+    if requested == "auto":
+        dtype = "bf16" if native or os.environ.get("MPD_BF16") == "emulate" else "fp32"
+    else:
+        dtype = requested
+    graph = (
+        device.type == "cuda"
+        and os.environ.get("MPD_CUDA_GRAPH", "1") != "0"
+        and hasattr(torch.cuda.CUDAGraph, "register_generator_state")
+    )
+    return Arithmetic(device.type, requested, dtype, native, graph)
+
+
+def training_request(precision: str) -> str:
+    """The request a training's ``precision`` makes: ``bf16`` asks for bf16 where the device has it natively (auto),
+    ``fp32`` for fp32."""
+    return "auto" if precision == "bf16" else "fp32"
+
+
 def training_arithmetic(precision: str, device: torch.device | str) -> str:
-    """The arithmetic a training of ``precision`` runs in on ``device``: bf16 autocast where the device has native
-    bf16 arithmetic, fp32 elsewhere (without AVX512_BF16 / AMX, oneDNN emulates bf16 and a training step of the
-    profiles' networks is ~30x slower: measured on an AMD EPYC Zen 3, AVX2). ``MPD_BF16=emulate`` forces bf16 there
-    (for tests of the bf16 path on any CPU)."""
-    if precision != "bf16":
-        return "fp32"
-    return "bf16" if native_bf16(device) or os.environ.get("MPD_BF16") == "emulate" else "fp32"
+    """The arithmetic (``fp32`` or ``bf16``) a training of ``precision`` runs in on ``device`` (:func:`resolve`)."""
+    return resolve(device, training_request(precision)).dtype
 
 
 def network_precision(requested: str, device: torch.device | str) -> str:
-    """The precision a planner runs its network in: ``fp32``, ``bf16``, or for ``auto`` bf16 where the device has
-    native bf16 arithmetic and fp32 elsewhere."""
-    if requested == "auto":
-        return "bf16" if native_bf16(device) else "fp32"
-    if requested not in ("fp32", "bf16"):
-        raise ValueError(f"network_precision must be auto, fp32 or bf16, got {requested!r}")
-    return requested
-
-
-def network_autocast(precision: str, device: torch.device | str):
-    """The context the network's forward passes run in: bf16 autocast (weights stay float32; matrix products and
-    convolutions in bf16 with float32 accumulation), or nothing for fp32."""
-    if precision == "bf16":
-        return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
-    return contextlib.nullcontext()
+    """The precision a planner runs its network in for ``PlannerSettings.network_precision`` (:func:`resolve`)."""
+    return resolve(device, requested, name="network_precision").dtype
 
 
 def default_device() -> torch.device:

@@ -9,6 +9,7 @@ import torch
 from mpd.models import train as train_module
 from mpd.models.checkpoint import read_checkpoint
 from mpd.models.cuda_graph import ema_weight, graph_supported
+from mpd.models.step import apply_ema
 from mpd.models.train import train_model
 from tests.test_models import TINY, tiny_training, toy_arrays
 
@@ -18,11 +19,12 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"
 @pytest.mark.parametrize("ema_every,ema_start", [(1, 0), (1, 7), (5, 20), (3, 4)])
 def test_ema_weight_is_the_eager_loops_rule_as_one_lerp(ema_every, ema_start):
     """Replaying the lerp weights on tensors gives the eager loop's EMA (copies before ema_start, decay on EMA steps,
-    nothing between), step for step."""
+    nothing between), step for step; so does apply_ema with the weight as a float (the eager and compiled steps) and
+    as a tensor (the captured step)."""
     ts = tiny_training(ema_every=ema_every, ema_start=ema_start, ema_decay=0.9)
     g = torch.Generator().manual_seed(0)
     w = torch.randn(50, generator=g)
-    ema_eager, ema_lerp = w.clone(), w.clone()
+    ema_eager, ema_lerp, ema_float, ema_tensor = w.clone(), w.clone(), w.clone(), w.clone()
     net = w.clone()
     for step in range(30):
         net = net + torch.randn(50, generator=g)
@@ -33,7 +35,10 @@ def test_ema_weight_is_the_eager_loops_rule_as_one_lerp(ema_every, ema_start):
             else:
                 ema_eager.lerp_(net, 1.0 - ts.ema_decay)
         ema_lerp.lerp_(net, torch.tensor(ema_weight(ts, step)))
-        assert torch.equal(ema_eager, ema_lerp), step
+        apply_ema([ema_float], [net], ema_weight(ts, step))
+        apply_ema([ema_tensor], [net], torch.tensor(ema_weight(ts, step)))
+        for other in (ema_lerp, ema_float, ema_tensor):
+            assert torch.equal(ema_eager, other), step
 
 
 def test_capture_is_refused_where_it_does_not_apply(tmp_path, monkeypatch):

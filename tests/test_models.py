@@ -13,6 +13,7 @@ import pytest
 import scipy.stats
 import torch
 
+import mpd.models.step as step_module
 import mpd.models.train as train_module
 from mpd.models import (
     CVAE,
@@ -354,19 +355,19 @@ def test_ctrl_c_saves_a_state_that_resumes_exactly(tmp_path, monkeypatch):
     arrays = toy_arrays()
     spec = tiny_training(steps=20, val_every=1000)
     ref = read_checkpoint(train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "a"))
-    original = train_module._ema_update
+    original = step_module.apply_ema
     calls = []
 
-    def ema_then_ctrl_c(*args, **kwargs):
-        original(*args, **kwargs)
-        calls.append(1)
-        if len(calls) == 2:  # step 10
+    def ema_then_ctrl_c(ema_params, params, w):
+        original(ema_params, params, w)
+        calls.append(w)
+        if sum(1 for x in calls if x) == 2:  # the second EMA update: step 10
             signal.raise_signal(signal.SIGINT)
 
-    monkeypatch.setattr(train_module, "_ema_update", ema_then_ctrl_c)
+    monkeypatch.setattr(step_module, "apply_ema", ema_then_ctrl_c)
     with pytest.raises(KeyboardInterrupt, match="step 10"):
         train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "b")
-    monkeypatch.setattr(train_module, "_ema_update", original)
+    monkeypatch.setattr(step_module, "apply_ema", original)
     resumed = read_checkpoint(
         train_model(arrays, "diffusion", TINY, spec, seed=1, progress=False, cache=tmp_path / "b")
     )

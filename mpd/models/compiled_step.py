@@ -5,8 +5,7 @@ small kernels (Mish and GroupNorm forward and backward, FiLM, residual sums, cas
 the whole activation; inductor fuses them into a few C++ loops, and the convolutions stay oneDNN's. Only the loss's
 deterministic part is compiled (:meth:`DiffusionModel.loss_of_draws`): the batch, the diffusion steps and the
 noise are drawn eagerly from the training's generator in the eager loop's order, and the gradient clipping, fused
-AdamW and the EMA are the eager loop's (the EMA's copies and lerps as :func:`torch._foreach_copy_` /
-:func:`torch._foreach_lerp_`, with the weights of :func:`mpd.models.cuda_graph.ema_weight`). So it computes what the
+AdamW and the EMA are the eager step's own (:meth:`mpd.models.step.StepBody.body`). So it computes what the
 eager step computes, in the same arithmetic (fp32, or bf16 autocast where the training's precision asks for it),
 up to float rounding inside the fused kernels: an execution mode, not part of a model's identity, recorded in the
 checkpoint and the meta (``execution``).
@@ -21,13 +20,11 @@ from __future__ import annotations
 import os
 import shutil
 import sys
-from collections.abc import Mapping
+from typing import Any
 
 import torch
-from torch import nn
 
-from mpd.models.cuda_graph import ema_weight
-from mpd.tasks.spec import TrainingSpec
+from mpd.models.step import EagerStep
 
 ENV = "MPD_TRAIN_COMPILE"
 MIN_STEPS = 2000  # steps in one call from which the compiled step is the default (MPD_TRAIN_COMPILE unset)
@@ -51,55 +48,30 @@ def compile_by_default(kind: str, device: torch.device, n_steps: int) -> bool:
     return env == "1" or n_steps >= MIN_STEPS
 
 
-class CompiledStep:
-    """``step(xb, cb, s, lr)`` runs (0-based) training step ``s`` on the batch ``(xb, cb)`` and returns the detached
-    loss: draws, compiled loss forward and backward, clipping, AdamW at ``lr``, EMA. Should the compilation fail (no
-    working C++ compiler), the step says so once and goes on eagerly with the same draws (``self.compiled`` False)."""
+class CompiledStep(EagerStep):
+    """The eager step with the loss's forward and backward compiled: the diffusion steps and the noise are drawn
+    eagerly (:meth:`DiffusionModel.loss_draws`), their loss (:meth:`DiffusionModel.loss_of_draws`) is compiled; the
+    rest of the body (clipping, AdamW, EMA) is the eager step's. Should the compilation fail (no working C++
+    compiler), the step says so once and goes on eagerly with the same draws (``self.compiled`` False)."""
 
-    def __init__(
-        self,
-        net: nn.Module,
-        ema: nn.Module,
-        opt: torch.optim.Optimizer,
-        gen: torch.Generator,
-        ts: TrainingSpec,
-        loss_kwargs: Mapping,
-        bf16: bool,
-    ):
-        self.net, self.opt, self.gen, self.ts, self.bf16 = net, opt, gen, ts, bf16
-        kw = dict(loss_kwargs)
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        kw = dict(self.loss_kwargs)
         self.draw_kwargs = {"t_grid": kw.pop("t_grid", None), "t_grid_fraction": kw.pop("t_grid_fraction", 0.0)}
         self.loss_kwargs = kw
-        self.params = list(net.parameters())
-        self.ema_params = list(ema.parameters())
         self.compiled = True
         self._loss_fn = torch.compile(self._loss, dynamic=False)
 
     def _loss(self, x0: torch.Tensor, context: dict[str, torch.Tensor], t: torch.Tensor, noise: torch.Tensor):
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+        with self.autocast():
             return self.net.loss_of_draws(x0, context, t, noise, **self.loss_kwargs)
 
-    def __call__(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int, lr: float) -> torch.Tensor:
+    def loss(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int) -> torch.Tensor:
         t, noise = self.net.loss_draws(xb, self.gen, **self.draw_kwargs)
         if self.compiled:
             try:
-                loss = self._loss_fn(xb, cb, t, noise)
+                return self._loss_fn(xb, cb, t, noise)
             except torch._dynamo.exc.BackendCompilerFailed as e:
                 print(f"mpd: the compiled training step failed to compile ({e}); training eagerly", file=sys.stderr)
                 self.compiled = False
-        if not self.compiled:
-            loss = self._loss(xb, cb, t, noise)
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.ts.grad_clip_norm > 0:
-            nn.utils.clip_grad_norm_(self.params, self.ts.grad_clip_norm)
-        for g in self.opt.param_groups:
-            g["lr"] = lr
-        self.opt.step()
-        w = ema_weight(self.ts, step)
-        with torch.no_grad():
-            if w == 1.0:
-                torch._foreach_copy_(self.ema_params, self.params)
-            elif w > 0.0:
-                torch._foreach_lerp_(self.ema_params, self.params, w)
-        return loss.detach()
+        return self._loss(xb, cb, t, noise)

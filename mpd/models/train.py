@@ -7,6 +7,12 @@ gradient-norm clipping; EMA of the weights (kept equal to the weights before ``e
 minibatches drawn with replacement. Every random number comes from one generator seeded with ``seed``
 (network init from ``seed`` too), and its state is checkpointed, so an interrupted and resumed run ends with
 the same weights as an uninterrupted one.
+
+:func:`train_model` puts together parts with one job each: ``_find_or_claim`` (the finished model, a shipped prior
+installed, or the lock to train it), :class:`TrainingState` (fresh, or resumed from ``last.pt`` or a ``wsd``
+trunk's snapshot), a step object of :mod:`mpd.models.step` (eager, compiled or captured: one step body),
+``_run_steps`` (the loop: validation, progress) and :class:`Checkpointer` (``last.pt``, trunk snapshots,
+``meta.json`` and ``model.pt``).
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from mpd import locks
-from mpd.device import default_device, synchronize, training_arithmetic
+from mpd.device import Arithmetic, default_device, resolve, synchronize, training_request
 from mpd.models.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
@@ -46,10 +52,11 @@ from mpd.models.checkpoint import (
 )
 from mpd.models.compiled_step import CompiledStep, compile_by_default, compile_supported
 from mpd.models.context import EE_GOAL, UNNORMALIZED_KEYS
-from mpd.models.cuda_graph import GraphedStep, graph_supported
+from mpd.models.cuda_graph import GraphedStep
 from mpd.models.data import SPLIT_TRAIN, SPLIT_VAL, TrainingArrays, fit_normalizers
 from mpd.models.diffusion import sampler_grid
 from mpd.models.normalizer import Normalizer
+from mpd.models.step import EagerStep, TrainingStep, apply_ema
 from mpd.paths import cache_dir
 from mpd.provenance import cpu_model, provenance
 from mpd.schema import ConfigError, stable_hash, to_dict
@@ -184,15 +191,6 @@ def _to_device(
 
 
 @torch.no_grad()
-def _ema_update(ema: nn.Module, model: nn.Module, decay: float, copy_weights: bool) -> None:
-    for pe, pm in zip(ema.parameters(), model.parameters()):
-        if copy_weights:
-            pe.copy_(pm)
-        else:
-            pe.lerp_(pm, 1.0 - decay)
-
-
-@torch.no_grad()
 def training_loss_kwargs(kind: str, ts: TrainingSpec, device: torch.device) -> dict[str, Any]:
     """The keywords of ``net.loss`` a training of ``ts`` passes (the diffusion loss's options; none for the CVAE)."""
     if kind != "diffusion":
@@ -203,45 +201,6 @@ def training_loss_kwargs(kind: str, ts: TrainingSpec, device: torch.device) -> d
     if ts.t_sampling == "sampler":
         kw.update(t_grid=sampler_grid().to(device), t_grid_fraction=ts.t_grid_fraction)
     return kw
-
-
-class EagerStep:
-    """``step(xb, cb, s, lr)`` runs (0-based) training step ``s`` on the batch ``(xb, cb)`` eagerly and returns the
-    detached loss: loss (under bf16 autocast when ``bf16``), backward, gradient clipping, AdamW at ``lr``, EMA. The
-    reference of the other execution modes (:class:`mpd.models.compiled_step.CompiledStep`, the CUDA graph)."""
-
-    def __init__(
-        self,
-        kind: str,
-        net: nn.Module,
-        ema: nn.Module,
-        opt: torch.optim.Optimizer,
-        gen: torch.Generator,
-        ts: TrainingSpec,
-        loss_kwargs: dict[str, Any],
-        bf16: bool,
-    ):
-        self.kind, self.net, self.ema, self.opt, self.gen, self.ts = kind, net, ema, opt, gen, ts
-        self.loss_kwargs = loss_kwargs
-        device = next(net.parameters()).device
-        self.autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
-
-    def __call__(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int, lr: float) -> torch.Tensor:
-        ts, net, opt = self.ts, self.net, self.opt
-        if self.kind == "cvae" and ts.kl_warmup_steps > 0:
-            self.loss_kwargs["kl_scale"] = min(1.0, step / ts.kl_warmup_steps)
-        with self.autocast:
-            loss = net.loss(xb, cb, self.gen, **self.loss_kwargs)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if ts.grad_clip_norm > 0:
-            nn.utils.clip_grad_norm_(net.parameters(), ts.grad_clip_norm)
-        for g in opt.param_groups:
-            g["lr"] = lr
-        opt.step()
-        if (step + 1) % ts.ema_every == 0:
-            _ema_update(self.ema, net, ts.ema_decay, copy_weights=step + 1 < ts.ema_start)
-        return loss.detach()
 
 
 def _val_loss(net: nn.Module, data: _Data, batch_size: int, seed: int) -> float:
@@ -365,6 +324,328 @@ def check_training_spec(ts: TrainingSpec) -> None:
         raise ValueError(f"training.{bad[0]} = {getattr(ts, bad[0])!r} is not allowed")
 
 
+# --- the parts of a training ------------------------------------------------------------------------------
+def _checked_spec(
+    arrays: TrainingArrays, kind: str, model_spec: ModelSpec, training_spec: TrainingSpec
+) -> TrainingSpec:
+    """The training spec as the trainer runs it, after the checks of the arguments (raised before any work): the
+    other kind's loss options reset to their defaults (neither used nor carried in the identity)."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown model kind {kind!r} (known: {', '.join(KINDS)})")
+    if not isinstance(model_spec, ModelSpec) or not isinstance(training_spec, TrainingSpec):
+        raise TypeError("model_spec must be a ModelSpec and training_spec a TrainingSpec")
+    if training_spec.steps < 1 or training_spec.batch_size < 1:
+        raise ValueError(f"training needs steps >= 1 and batch_size >= 1, got {training_spec}")
+    check_training_spec(training_spec)
+    arrays.validate()
+    if kind != "diffusion":  # a diffusion-loss option: the CVAE neither uses it nor carries it in its identity
+        return dataclasses.replace(training_spec, goal_row_weight=1.0)
+    ts = dataclasses.replace(training_spec, kl_warmup_steps=0)  # and the other way round: a CVAE-loss option
+    if ts.goal_row_weight != 1.0 and arrays.context_kind != EE_GOAL:
+        raise ValueError(
+            f"training.goal_row_weight = {ts.goal_row_weight!r}: {arrays.task_name} has a joint-space goal, so "
+            "the model has no free final configuration to weight; use 1"
+        )
+    return ts
+
+
+@dataclass
+class _Claim:
+    """A model to train: its identity, its folder, and this process's lock on it (released when closed or let go)."""
+
+    identity: str
+    out: Path
+    held: Any
+
+    @property
+    def last_path(self) -> Path:
+        return self.out / LAST_FILE
+
+
+def _find_or_claim(
+    arrays: TrainingArrays,
+    kind: str,
+    model_spec: ModelSpec,
+    ts: TrainingSpec,
+    seed: int,
+    cache: str | Path | None,
+    shipped: bool,
+) -> Path | _Claim:
+    """The ``model.pt`` of this identity when it exists or a shipped prior installs it, else the claim to train it."""
+    identity = model_identity(
+        arrays.dataset_hash, kind, arrays.parametrization, arrays.parametrization_settings, model_spec, ts, seed
+    )
+    out = model_dir(arrays.task_name, kind, arrays.parametrization, identity, cache)
+    final_path, last_path = out / MODEL_FILE, out / LAST_FILE
+    if final_path.is_file():
+        return final_path
+    # One process per identity: a second `mpd train` (or run) of this model waits here for the first and then finds
+    # its model.pt instead of training it again. The lock is released when `held` is closed (when the training
+    # returns, or when the process dies: a kill -9 leaves no stale lock).
+    held = locks.hold(out)
+    if final_path.is_file():
+        held.close()
+        return final_path
+    if shipped and not last_path.is_file():
+        from mpd.models import shipped as shipped_priors
+
+        got = shipped_priors.install(arrays.task_name, kind, arrays.parametrization, identity, out)
+        if got is not None:
+            return got
+    out.mkdir(parents=True, exist_ok=True)
+    return _Claim(identity, out, held)
+
+
+@dataclass
+class _Trunk:
+    """The stable phase of a ``wsd`` training, shared by every budget of it: its key and its snapshots' folder."""
+
+    key: str
+    dir: Path
+    stable_end: int
+
+    @classmethod
+    def of(
+        cls, arrays: TrainingArrays, kind: str, model_spec: ModelSpec, ts: TrainingSpec, seed: int, cache: Any
+    ) -> _Trunk | None:
+        if ts.lr_schedule != "wsd":
+            return None
+        key = trunk_identity(
+            arrays.dataset_hash, kind, arrays.parametrization, arrays.parametrization_settings, model_spec, ts, seed
+        )
+        folder = models_root(cache) / arrays.task_name / "trunks" / f"{kind}-{arrays.parametrization}-{key}"
+        return cls(key, folder, stable_steps(ts))
+
+
+@dataclass
+class TrainingState:
+    """What a training carries from step to step and its ``last.pt`` holds: network, EMA, optimizer, the generator
+    of every draw, the step count, the wall time of the calls before this one, the validation history and the
+    training-loss sum since the last validation (``running``, a 0-d tensor only ever changed in place)."""
+
+    net: nn.Module
+    ema: nn.Module
+    opt: torch.optim.Optimizer
+    gen: torch.Generator
+    running: torch.Tensor
+    step: int = 0
+    wall: float = 0.0
+    history: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    running_n: int = 0
+
+    @classmethod
+    def fresh(
+        cls, kind: str, arrays: TrainingArrays, spec: ModelSpec, ts: TrainingSpec, seed: int, device: torch.device
+    ) -> TrainingState:
+        net = _init_network(kind, arrays, spec, seed).to(device)
+        ema = copy.deepcopy(net).requires_grad_(False)
+        opt = make_optimizer(net, ts)
+        gen = torch.Generator(device=device).manual_seed(seed)
+        return cls(net, ema, opt, gen, torch.zeros((), device=device))
+
+    def load(self, state: dict[str, Any], device: torch.device) -> None:
+        """Continue from a checkpoint's training state (a ``last.pt`` or a trunk snapshot)."""
+        self.net.load_state_dict(state["weights"])
+        self.ema.load_state_dict(state["ema_weights"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.gen.set_state(state["rng"].cpu())
+        self.step, self.wall, self.history = int(state["step"]), float(state["wall_time_s"]), list(state["history"])
+        self.running, self.running_n = state["running_loss"].to(device), int(state["running_n"])
+
+    def checkpoint(self, wall: float) -> dict[str, Any]:
+        return {
+            "weights": self.net.state_dict(),
+            "ema_weights": self.ema.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "rng": self.gen.get_state(),
+            "step": self.step,
+            "wall_time_s": wall,
+            "history": self.history,
+            "running_loss": self.running,
+            "running_n": self.running_n,
+        }
+
+
+def _resume_state(
+    claim: _Claim, trunk: _Trunk | None, device: torch.device
+) -> tuple[dict[str, Any] | None, int | None]:
+    """The checkpoint a training continues from: its own ``last.pt``, else (``wsd``) the latest snapshot of its
+    trunk, else none (a fresh start); and the trunk step the training first resumed from, if it did."""
+    if claim.last_path.is_file():
+        state = read_checkpoint(claim.last_path, map_location=device)
+        if state["identity"] != claim.identity:
+            raise ConfigError(
+                claim.last_path, "identity", f"is {state['identity']!r}, expected {claim.identity!r} (foreign file)"
+            )
+        return state, state.get("resumed_from_trunk_step")
+    if trunk is not None:
+        state = _latest_trunk_state(trunk.dir, trunk.key, trunk.stable_end, device)
+        if state is not None:
+            return state, int(state["step"])
+    return None, None
+
+
+class Checkpointer:
+    """Writes a training's files: ``last.pt`` every ``checkpoint_every`` steps (and when interrupted or stopped),
+    the stable-phase snapshots of a ``wsd`` trunk, and at the end ``meta.json`` then ``model.pt`` (which replaces
+    ``last.pt``). Every file carries ``record`` (what made the model); the wall time counts from :meth:`start`."""
+
+    def __init__(self, out: Path, record: dict[str, Any], ts: TrainingSpec, trunk: _Trunk | None):
+        self.out, self.record, self.ts, self.trunk = out, record, ts, trunk
+        self.last_path = out / LAST_FILE
+        self.t0 = time.perf_counter()
+
+    def start(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def save(self, state: TrainingState, path: Path | None = None) -> None:
+        save_atomic({**self.record, **state.checkpoint(state.wall + self.elapsed())}, path or self.last_path)
+
+    def after_step(self, state: TrainingState) -> None:
+        step, ts, trunk = state.step, self.ts, self.trunk
+        if step % ts.checkpoint_every == 0 and step < ts.steps:
+            self.save(state)
+        if (
+            trunk is not None
+            and step <= trunk.stable_end
+            and (step % ts.checkpoint_every == 0 or step == trunk.stable_end)
+        ):
+            snap = trunk.dir / f"step-{step:09d}.pt"
+            if not snap.is_file():  # a stable-phase state: every wsd budget of this trunk passes through it
+                trunk.dir.mkdir(parents=True, exist_ok=True)
+                self.save(state, snap)
+
+    def finish(self, state: TrainingState, elapsed: float, **meta_fields: Any) -> Path:
+        """Write the final model (weights, EMA, history; no optimizer) with its meta; return ``model.pt``'s path."""
+        final = {
+            **self.record,
+            "weights": state.net.state_dict(),
+            "ema_weights": state.ema.state_dict(),
+            "step": state.step,
+            "wall_time_s": state.wall + elapsed,
+            "history": state.history,
+        }
+        meta = checkpoint_meta(final)
+        meta.update(meta_fields, created=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        # meta first: a model.pt (what marks a finished model) always has its meta.json
+        _write_json_atomic(meta, self.out / META_FILE)
+        final_path = self.out / MODEL_FILE
+        save_atomic(final, final_path)
+        self.last_path.unlink(missing_ok=True)  # the final file supersedes it (a longer run is another identity)
+        return final_path
+
+
+def _execution_mode(
+    kind: str,
+    device: torch.device,
+    arithmetic: Arithmetic,
+    cuda_graph: bool | None,
+    compile_step: bool | None,
+    n_steps: int,
+    retrain_shipped: Callable[[], bool],
+) -> str:
+    """How this call runs its steps: ``cuda_graph``, ``compiled`` or ``eager`` (see :func:`train_model`).
+    ``retrain_shipped()``: whether the training retrains a shipped prior that was trained eagerly."""
+    if cuda_graph is None:
+        cuda_graph = kind == "diffusion" and arithmetic.cuda_graph
+    elif cuda_graph and not (kind == "diffusion" and device.type == "cuda"):
+        raise ValueError(f"cuda_graph=True: only a diffusion training on CUDA is captured, not {kind} on {device}")
+    if compile_step is None:
+        compile_step = not cuda_graph and compile_by_default(kind, device, n_steps)
+        if compile_step and retrain_shipped():
+            compile_step = False  # a shipped prior retrained: its own (eager) execution, for the same bits
+    elif compile_step and not compile_supported(kind, device):
+        raise ValueError(
+            f"compile_step=True: only a diffusion training on a CPU with a C++ compiler, not {kind} on {device}"
+        )
+    if cuda_graph:
+        return "cuda_graph"
+    return "compiled" if compile_step else "eager"
+
+
+def _execution_record(state: dict[str, Any] | None, step: int, mode: str) -> list[list[Any]]:
+    """The modes the checkpoint's steps ran in, ``[[first step, mode], ...]``, with this call's appended."""
+    execution = [list(e) for e in state.get("execution", [[0, "eager"]])] if state is not None else [[step, mode]]
+    if execution[-1][1] != mode:
+        execution.append([step, mode])
+    return execution
+
+
+def _record_execution(record: dict[str, Any], mode: str, execution: list[list[Any]], device: torch.device) -> None:
+    """What of the execution a model's files record: the modes other than eager where used (the records of the eager
+    trainings are as before), and on a CPU the intra-op thread count."""
+    if mode == "cuda_graph":
+        record["cuda_graph"] = True
+    if any(m != "eager" for _, m in execution):
+        record["execution"] = execution
+    if device.type == "cpu":
+        # a CPU training's bits depend on its intra-op thread count too (the reductions' split): the same identity
+        # gives the same weights on the same CPU type with the same count (mpd.experiments.artifacts trains with 1)
+        record["cpu_threads"] = torch.get_num_threads()
+
+
+def _make_step(
+    mode: str,
+    kind: str,
+    state: TrainingState,
+    ts: TrainingSpec,
+    loss_kwargs: dict[str, Any],
+    arithmetic: Arithmetic,
+    train: _Data,
+) -> TrainingStep:
+    """The step object of ``mode``: its batches drawn from ``train`` with the training's generator."""
+    n_train, gen, device = len(train), state.gen, state.running.device
+
+    def draw() -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        return train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device))
+
+    cls = {"cuda_graph": GraphedStep, "compiled": CompiledStep, "eager": EagerStep}[mode]
+    return cls(kind, state.net, state.ema, state.opt, gen, ts, loss_kwargs, arithmetic, draw, state.running)
+
+
+def _run_steps(
+    step_fn: TrainingStep,
+    state: TrainingState,
+    ts: TrainingSpec,
+    end: int,
+    val: _Data,
+    seed: int,
+    checkpointer: Checkpointer,
+    bar: tqdm,
+) -> None:
+    """Steps up to ``end``: each one, then the validation loss (of the EMA) every ``val_every`` steps and at the
+    last, the progress bar, the checkpoints. Ctrl-C stops between two whole steps after saving ``last.pt``."""
+    last_train = last_val = float("nan")
+    with _deferred_sigint() as interrupted:
+        while state.step < end:
+            step_fn(state.step, learning_rate(ts, state.step))
+            state.step += 1
+            state.running_n += 1
+            step = state.step
+            if step % ts.val_every == 0 or step == ts.steps:
+                last_train = float(state.running) / state.running_n
+                state.running.zero_()  # in place: the step object adds to this very tensor
+                state.running_n = 0
+                if len(val):
+                    last_val = _val_loss(state.ema, val, 4 * ts.batch_size, seed)
+                state.history.append(
+                    {"step": step, "train_loss": last_train, "val_loss": last_val if len(val) else None}
+                )
+            elif step % LOG_EVERY == 0 or step == end:
+                last_train = float(state.running) / state.running_n
+            if step % LOG_EVERY == 0 or step == end:
+                bar.set_postfix(loss=f"{last_train:.4f}", val=f"{last_val:.4f}", refresh=False)
+                bar.update(step - bar.n)
+            checkpointer.after_step(state)
+            if interrupted():  # Ctrl-C: stop between two whole steps, so the resume is exact
+                checkpointer.save(state)
+                bar.close()
+                raise KeyboardInterrupt(f"training interrupted at step {step}; {checkpointer.last_path} resumes it")
+
+
 # --- public API ------------------------------------------------------------------------------------------
 def train_model(
     arrays: TrainingArrays,
@@ -396,234 +677,72 @@ def train_model(
     The modes a checkpoint's steps ran in are recorded as ``execution`` (``[[first step, mode], ...]``) wherever a
     mode other than eager was used.
     """
-    if kind not in KINDS:
-        raise ValueError(f"unknown model kind {kind!r} (known: {', '.join(KINDS)})")
-    if not isinstance(model_spec, ModelSpec) or not isinstance(training_spec, TrainingSpec):
-        raise TypeError("model_spec must be a ModelSpec and training_spec a TrainingSpec")
-    if training_spec.steps < 1 or training_spec.batch_size < 1:
-        raise ValueError(f"training needs steps >= 1 and batch_size >= 1, got {training_spec}")
-    check_training_spec(training_spec)
-    arrays.validate()
-    ts = training_spec
-    if kind != "diffusion":  # a diffusion-loss option: the CVAE neither uses it nor carries it in its identity
-        ts = dataclasses.replace(ts, goal_row_weight=1.0)
-    else:  # and the other way round: a CVAE-loss option
-        ts = dataclasses.replace(ts, kl_warmup_steps=0)
-        if ts.goal_row_weight != 1.0 and arrays.context_kind != EE_GOAL:
-            raise ValueError(
-                f"training.goal_row_weight = {ts.goal_row_weight!r}: {arrays.task_name} has a joint-space goal, so "
-                "the model has no free final configuration to weight; use 1"
-            )
-    identity = model_identity(
-        arrays.dataset_hash,
-        kind,
-        arrays.parametrization,
-        arrays.parametrization_settings,
-        model_spec,
-        ts,
-        seed,
-    )
-    out = model_dir(arrays.task_name, kind, arrays.parametrization, identity, cache)
-    final_path, last_path = out / MODEL_FILE, out / LAST_FILE
-    if final_path.is_file():
-        return final_path
-    # One process per identity: a second `mpd train` (or run) of this model waits here for the first and then finds
-    # its model.pt instead of training it again. The lock is released when `held` is closed (on return, or when the
-    # process dies: a kill -9 leaves no stale lock).
-    held = locks.hold(out)
-    if final_path.is_file():
-        held.close()
-        return final_path
-    if shipped and not last_path.is_file():
-        from mpd.models import shipped as shipped_priors
-
-        got = shipped_priors.install(arrays.task_name, kind, arrays.parametrization, identity, out)
-        if got is not None:
-            return got
-    out.mkdir(parents=True, exist_ok=True)
+    ts = _checked_spec(arrays, kind, model_spec, training_spec)
+    claim = _find_or_claim(arrays, kind, model_spec, ts, seed, cache, shipped)
+    if isinstance(claim, Path):
+        return claim
+    identity = claim.identity
     device = torch.device(device) if device is not None else default_device()
 
     x_norm, ctx_norms = fit_normalizers(arrays)
     train = _to_device(arrays, arrays.indices(SPLIT_TRAIN), x_norm, ctx_norms, device)
     val = _to_device(arrays, arrays.indices(SPLIT_VAL)[:VAL_MAX_SAMPLES], x_norm, ctx_norms, device)
     record = _base_record(arrays, kind, identity, model_spec, ts, seed, x_norm, ctx_norms)
+    trunk = _Trunk.of(arrays, kind, model_spec, ts, seed, cache)
+    record["trunk"] = trunk.key if trunk is not None else None
+    state = TrainingState.fresh(kind, arrays, model_spec, ts, seed, device)
+    resumed, from_trunk_step = _resume_state(claim, trunk, device)
+    if from_trunk_step is not None:
+        record["resumed_from_trunk_step"] = from_trunk_step
+    if resumed is not None:
+        state.load(resumed, device)
 
-    net = _init_network(kind, arrays, model_spec, seed).to(device)
-    ema = copy.deepcopy(net).requires_grad_(False)
-    opt = make_optimizer(net, ts)
-    gen = torch.Generator(device=device).manual_seed(seed)
-    step, wall, history = 0, 0.0, []
-    running, running_n = torch.zeros((), device=device), 0  # training-loss sum since the last validation
-    trunk_dir = trunk_key = None
-    stable_end = stable_steps(ts)
-    if ts.lr_schedule == "wsd":
-        trunk_key = trunk_identity(
-            arrays.dataset_hash, kind, arrays.parametrization, arrays.parametrization_settings, model_spec, ts, seed
-        )
-        trunk_dir = models_root(cache) / arrays.task_name / "trunks" / f"{kind}-{arrays.parametrization}-{trunk_key}"
-    record["trunk"] = trunk_key
-    state = None
-    if last_path.is_file():
-        state = read_checkpoint(last_path, map_location=device)
-        if state["identity"] != identity:
-            raise ConfigError(last_path, "identity", f"is {state['identity']!r}, expected {identity!r} (foreign file)")
-        if "resumed_from_trunk_step" in state:
-            record["resumed_from_trunk_step"] = state["resumed_from_trunk_step"]
-    elif trunk_dir is not None:
-        state = _latest_trunk_state(trunk_dir, trunk_key, stable_end, device)
-        if state is not None:
-            record["resumed_from_trunk_step"] = int(state["step"])
-    if state is not None:
-        net.load_state_dict(state["weights"])
-        ema.load_state_dict(state["ema_weights"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["rng"].cpu())
-        step, wall, history = int(state["step"]), float(state["wall_time_s"]), list(state["history"])
-        running, running_n = state["running_loss"].to(device), int(state["running_n"])
-
-    def save_last(path: Path = last_path) -> None:
-        save_atomic(
-            {
-                **record,
-                "weights": net.state_dict(),
-                "ema_weights": ema.state_dict(),
-                "optimizer": opt.state_dict(),
-                "rng": gen.get_state(),
-                "step": step,
-                "wall_time_s": wall + (time.perf_counter() - t0),
-                "history": history,
-                "running_loss": running,
-                "running_n": running_n,
-            },
-            path,
-        )
-
-    end = ts.steps if stop_after is None else min(ts.steps, step + max(stop_after, 0))
-    n_train = len(train)
-    first_step = step
-    last_train = last_val = float("nan")
+    end = ts.steps if stop_after is None else min(ts.steps, state.step + max(stop_after, 0))
+    first_step = state.step
     bar = tqdm(
-        total=ts.steps, initial=step, unit="step", disable=not progress, dynamic_ncols=True,
+        total=ts.steps, initial=state.step, unit="step", disable=not progress, dynamic_ncols=True,
         desc=f"{kind}-{arrays.parametrization} {arrays.task_name} [{identity[:8]}]", mininterval=1.0,
     )  # fmt: skip
-    loss_kwargs = training_loss_kwargs(kind, ts, device)
-    arithmetic = training_arithmetic(ts.precision, device)
-    if arithmetic != ts.precision:
+    arithmetic = resolve(device, training_request(ts.precision))
+    if arithmetic.dtype != ts.precision:
         tqdm.write(
             f"{kind} {arrays.task_name}: precision bf16 trains in fp32 arithmetic here: {device} has no native bf16 "
             "(AVX512_BF16 / AMX); emulated bf16 is ~30x slower (MPD_BF16=emulate forces it)"
         )
-    if cuda_graph is None:
-        cuda_graph = graph_supported(kind, device)
-    elif cuda_graph and not (kind == "diffusion" and device.type == "cuda"):
-        raise ValueError(f"cuda_graph=True: only a diffusion training on CUDA is captured, not {kind} on {device}")
-    if compile_step is None:
-        compile_step = not cuda_graph and compile_by_default(kind, device, end - step)
-        if compile_step and not shipped and _shipped_eager(arrays.task_name, kind, arrays.parametrization, identity):
-            compile_step = False  # a shipped prior retrained: its own (eager) execution, for the same bits
-    elif compile_step and not compile_supported(kind, device):
-        raise ValueError(
-            f"compile_step=True: only a diffusion training on a CPU with a C++ compiler, not {kind} on {device}"
+    mode = _execution_mode(
+        kind, device, arithmetic, cuda_graph, compile_step, end - state.step,
+        lambda: not shipped and _shipped_eager(arrays.task_name, kind, arrays.parametrization, identity),
+    )  # fmt: skip
+    if mode == "compiled" and progress:
+        tqdm.write(
+            f"{kind} {arrays.task_name}: the training step's loss is compiled on the first step (torch.compile, "
+            "1-8 min on a busy 2-core CPU, less from inductor's cache); MPD_TRAIN_COMPILE=0 trains eagerly"
         )
-    graphed = compiled = None
-    if compile_step:
-        compiled = CompiledStep(net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
-        if progress:
-            tqdm.write(
-                f"{kind} {arrays.task_name}: the training step's loss is compiled on the first step (torch.compile, "
-                "1-8 min on a busy 2-core CPU, less from inductor's cache); MPD_TRAIN_COMPILE=0 trains eagerly"
-            )
-    stepper = compiled or EagerStep(kind, net, ema, opt, gen, ts, loss_kwargs, arithmetic == "bf16")
-    if cuda_graph:
-        graphed = GraphedStep(
-            net, ema, opt,
-            lambda: train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device)),
-            gen, ts, loss_kwargs, arithmetic == "bf16", running,
-        )  # fmt: skip
-        record["cuda_graph"] = True  # recorded where used (the records of the eager trainings are as before)
-    mode = "cuda_graph" if graphed is not None else "compiled" if compiled is not None else "eager"
-    execution = [list(e) for e in state.get("execution", [[0, "eager"]])] if state is not None else [[step, mode]]
-    if execution[-1][1] != mode:
-        execution.append([step, mode])
-    if any(m != "eager" for _, m in execution):  # recorded where used (the eager trainings' records are as before)
-        record["execution"] = execution
-    if device.type == "cpu":
-        # a CPU training's bits depend on its intra-op thread count too (the reductions' split): the same identity
-        # gives the same weights on the same CPU type with the same count (mpd.experiments.artifacts trains with 1)
-        record["cpu_threads"] = torch.get_num_threads()
-    t0 = time.perf_counter()
-    net.train()
-    with _deferred_sigint() as interrupted:
-        while step < end:
-            if graphed is not None:  # the same step, captured: batch, loss, clipping, AdamW, EMA, running sum
-                graphed(step, learning_rate(ts, step))
-                step += 1
-            else:  # eager, or its loss compiled (the same draws, clipping, AdamW and EMA)
-                xb, cb = train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device))
-                running += stepper(xb, cb, step, learning_rate(ts, step))
-                step += 1
-            running_n += 1
-            if step % ts.val_every == 0 or step == ts.steps:
-                last_train = float(running) / running_n
-                running.zero_()  # in place: a captured step adds to this very tensor
-                running_n = 0
-                if len(val):
-                    last_val = _val_loss(ema, val, 4 * ts.batch_size, seed)
-                history.append({"step": step, "train_loss": last_train, "val_loss": last_val if len(val) else None})
-            elif step % LOG_EVERY == 0 or step == end:
-                last_train = float(running) / running_n
-            if step % LOG_EVERY == 0 or step == end:
-                bar.set_postfix(loss=f"{last_train:.4f}", val=f"{last_val:.4f}", refresh=False)
-                bar.update(step - bar.n)
-            if step % ts.checkpoint_every == 0 and step < ts.steps:
-                save_last()
-            if trunk_dir is not None and step <= stable_end and (step % ts.checkpoint_every == 0 or step == stable_end):
-                snap = trunk_dir / f"step-{step:09d}.pt"
-                if not snap.is_file():  # a stable-phase state: every wsd budget of this trunk passes through it
-                    trunk_dir.mkdir(parents=True, exist_ok=True)
-                    save_last(snap)
-            if interrupted():  # Ctrl-C: stop between two whole steps, so the resume is exact
-                save_last()
-                bar.close()
-                raise KeyboardInterrupt(f"training interrupted at step {step}; {last_path} resumes it")
+    step_fn = _make_step(mode, kind, state, ts, training_loss_kwargs(kind, ts, device), arithmetic, train)
+    _record_execution(record, mode, _execution_record(resumed, state.step, mode), device)
+
+    checkpointer = Checkpointer(claim.out, record, ts, trunk)
+    checkpointer.start()
+    state.net.train()
+    _run_steps(step_fn, state, ts, end, val, seed, checkpointer, bar)
     bar.close()
     synchronize(device)
-    if step < ts.steps:  # stopped by stop_after
-        save_last()
-        return last_path
+    if state.step < ts.steps:  # stopped by stop_after
+        checkpointer.save(state)
+        return claim.last_path
 
     if ts.steps < ts.ema_start:  # the EMA never started: it is the final weights
-        _ema_update(ema, net, ts.ema_decay, copy_weights=True)
-    elapsed = time.perf_counter() - t0
-    wall += elapsed
-    final = {
-        **record,
-        "weights": net.state_dict(),
-        "ema_weights": ema.state_dict(),
-        "step": step,
-        "wall_time_s": wall,
-        "history": history,
-    }
-    meta = checkpoint_meta(final)
-    meta.update(
-        n_train=n_train,
-        n_val=len(val),
-        n_parameters=sum(p.numel() for p in net.parameters()),
-        device=str(device),
-        cpu=cpu_model(),
-        arithmetic=arithmetic,
-        source="trained",
-        steps=step,
-        steps_per_s=(step - first_step) / elapsed if elapsed > 0 else None,
+        apply_ema(state.ema.parameters(), state.net.parameters(), 1.0)
+    elapsed = checkpointer.elapsed()
+    history = state.history
+    return checkpointer.finish(
+        state, elapsed,
+        n_train=len(train), n_val=len(val), n_parameters=sum(p.numel() for p in state.net.parameters()),
+        device=str(device), cpu=cpu_model(), **arithmetic.record(), source="trained", steps=state.step,
+        steps_per_s=(state.step - first_step) / elapsed if elapsed > 0 else None,
         final_train_loss=history[-1]["train_loss"] if history else None,
         final_val_loss=history[-1]["val_loss"] if history else None,
-        created=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-    )
-    # meta first: a model.pt (what marks a finished model) always has its meta.json
-    _write_json_atomic(meta, out / META_FILE)
-    save_atomic(final, final_path)
-    last_path.unlink(missing_ok=True)  # the final file supersedes it (a longer run is another identity)
-    return final_path
+    )  # fmt: skip
 
 
 def _shipped_eager(task_name: str, kind: str, parametrization: str, identity: str) -> bool:

@@ -23,7 +23,7 @@ import functools
 
 import torch
 
-from mpd.device import network_autocast, network_precision
+from mpd.device import Arithmetic, resolve
 from mpd.models.diffusion import ddim_sigma, ddim_step, ddim_timesteps, ddpm_mean, randn
 from mpd.planners.base import Context, HistoryStep, Planner, Timer, model_context, register
 from mpd.planners.optimize import clip_grad, optimize, project
@@ -36,6 +36,11 @@ class MPD(Planner):
     model_kind = "diffusion"
     guided = True
 
+    @property
+    def arithmetic(self) -> Arithmetic:
+        """The arithmetic the denoising network runs in here (``network_precision`` on the planner's device)."""
+        return resolve(self.device, self.settings.network_precision, name="network_precision")
+
     def sample(self, ctx: Context, n: int, gen: torch.Generator, timer: Timer, hist: list | None) -> torch.Tensor:
         """n samples (normalized free rows) of the guided (or, for Dprior, unguided) denoising process."""
         s = self.settings
@@ -43,8 +48,7 @@ class MPD(Planner):
         cond = self.model.normalize_context(model_context(ctx))
         shape = (n, self.param.n_free, self.task.dof)
         dev = self.device
-        precision = network_precision(s.network_precision, dev)
-        autocast = functools.partial(network_autocast, precision, dev)
+        autocast = self.arithmetic.autocast
         grad_fn = self.cost_grad_fn(ctx, timer) if self.guided else None
         # the model's compiled U-Net (DiffusionModel.forward) when asked for; otherwise the network is called plainly
         eps_net = functools.partial(net, compiled=True) if s.network_compile else net
@@ -113,10 +117,9 @@ class MPD(Planner):
             return 0.0
         t0 = time.perf_counter()
         dev = self.device
-        precision = network_precision(self.settings.network_precision, dev)
         shapes = context_shapes(self.model.context_kind, self.task.dof)
         x = torch.zeros(n_samples, self.param.n_free, self.task.dof, device=dev)
-        with torch.no_grad(), network_autocast(precision, dev):
+        with torch.no_grad(), self.arithmetic.autocast():
             emb = net.embed_context({k: torch.zeros(1, *s, device=dev) for k, s in shapes.items()})
             net(x, net.n_diffusion_steps - 1, emb, compiled=True)
         warm.add(n_samples)
@@ -133,10 +136,10 @@ class MPD(Planner):
             x = self.after_sampling(x, ctx, timer, hist)
             free = self.normalizer.unnormalize(x)
         timer.times["sampling"] = timer.times["total"] - timer.times.get("cost_gradient", 0.0)
-        precision = network_precision(self.settings.network_precision, self.device)
         return self.finish(
-            free, ctx, timer, hist, network_precision=precision, network_compiled=self.settings.network_compile
-        )
+            free, ctx, timer, hist, network_precision=self.arithmetic.dtype,
+            network_compiled=self.settings.network_compile,
+        )  # fmt: skip
 
     def after_sampling(self, x: torch.Tensor, ctx: Context, timer: Timer, hist: list | None) -> torch.Tensor:
         return x
