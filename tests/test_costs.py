@@ -14,6 +14,7 @@ import dataclasses
 import pytest
 import torch
 
+from mpd import kernels
 from mpd.costs import COSTS, CostFunction, CostInput
 from mpd.costs.base import spheres_vjp_sparse
 from mpd.costs.ee_pose import ee_pose_error
@@ -370,8 +371,8 @@ def test_compiled_self_collision_is_the_torch_path(dtype, preset):
         terms = {}
         for compiled in (True, False):
             c = SelfCollisionCost(task, preset)
-            c.compiled = compiled
-            terms[compiled] = c(CostInput(dense, task, task.env(), None, "nearest"), 2.0)
+            with kernels.use("compiled" if compiled else "torch", "self_collision"):
+                terms[compiled] = c(CostInput(dense, task, task.env(), None, "nearest"), 2.0)
         assert (terms[False].value > 0).any()
         # a trajectory's value sums its 128 configurations' terms in another order than torch's reduction (whose
         # kernels differ by CPU: AVX2 vs AVX-512), so in float32 the two agree to the sum's rounding (~n eps), not
@@ -449,7 +450,7 @@ def test_compiled_ee_cost_is_the_torch_path(dtype, preset):
     # the cost's tolerance below is the float32 path's rounding (whose closed forms cancel: 3e-4 at 0.5)
     from mpd.costs import ee_kernel, se3
 
-    small = se3._small(dtype)
+    small = se3.series_below(dtype)
     rot = torch.linalg.matrix_exp(_hat(axis * ang[:, None]))
     for k in range(len(ang)):
         c, dc = ee_kernel._vinv_coeffs(float(ang[k]), small)
@@ -462,11 +463,11 @@ def test_compiled_ee_cost_is_the_torch_path(dtype, preset):
         out = {}
         for compiled in (True, False):
             cost = EEPoseCost(task, preset)
-            cost.compiled = compiled
             inp = CostInput(dense, task, task.env(), goal, "nearest")
             if with_fk:
                 inp.kinematics()
-            out[compiled] = cost(inp, 1.7)
+            with kernels.use("compiled" if compiled else "torch", "ee_pose"):
+                out[compiled] = cost(inp, 1.7)
         assert out[False].value.max() > 1
         torch.testing.assert_close(out[True].value, out[False].value, **tol)
         torch.testing.assert_close(out[True].g_q, out[False].g_q, **tol)
@@ -559,8 +560,8 @@ def test_compiled_collision_pass_is_the_torch_path(key, dtype):
     terms = {}
     for compiled in (True, False):
         c = CollisionCost(task, "official")
-        c.compiled = compiled
-        terms[compiled] = c(CostInput(dense, task, env, ee_goal, "nearest"), 2.0)
+        with kernels.use("compiled" if compiled else "torch", "collision"):
+            terms[compiled] = c(CostInput(dense, task, env, ee_goal, "nearest"), 2.0)
     torch.testing.assert_close(terms[True].value, terms[False].value, rtol=1e-6, atol=0)
     scale = terms[False].g_q.abs().max().item()
     torch.testing.assert_close(terms[True].g_q, terms[False].g_q, rtol=1e-5, atol=1e-6 * scale)
@@ -680,7 +681,7 @@ def test_fused_phase_pass_is_the_torch_path(key, dtype, preset, kind):
     free, q_start = free.to(dtype), q_start.to(dtype)
     q_goal = None if q_goal is None else q_goal.to(dtype)
     dense = param.dense(free, q_start, q_goal)
-    assert phase_kernel.supported(dense.stacked)
+    assert kernels.supported(dense.stacked)
     inp = CostInput(dense, task, env, None, "nearest")
     weights = {"velocity": 0.7, "acceleration": 1.3, "joint_limits": 2.0}
     costs = [COSTS[name](task, preset) for name in weights]
@@ -704,8 +705,8 @@ def test_fused_phase_pass_is_the_torch_path(key, dtype, preset, kind):
     cf = CostFunction(task, param, env, preset=preset, sdf_mode="nearest")
     assert {c.name for c, _ in cf.fused} == set(weights)
     with_pass = cf(free, q_start, q_goal, None if ee_goal is None else tuple(x.to(dtype) for x in ee_goal))
-    cf.fused = []
-    without = cf(free, q_start, q_goal, None if ee_goal is None else tuple(x.to(dtype) for x in ee_goal))
+    with kernels.use("torch", "phase"):
+        without = cf(free, q_start, q_goal, None if ee_goal is None else tuple(x.to(dtype) for x in ee_goal))
     torch.testing.assert_close(with_pass.total, without.total, **tol)
     torch.testing.assert_close(with_pass.grad, without.grad, **tol)
     with pytest.raises(ValueError, match="two norm penalties on dense field 1"):

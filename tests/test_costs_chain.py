@@ -157,17 +157,17 @@ def test_translational_chain_fk_and_jacobian_products_match_the_general_pass():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("name", [*ROBOTS, "mixed"])
-def test_compiled_fk_pass_is_the_torch_pass(name, dtype, monkeypatch):
+def test_compiled_fk_pass_is_the_torch_pass(name, dtype):
     """The compiled FK (``mpd.robots.fk_kernel``) against the torch pass it replaces on the CPU: frames, axes, origins,
     points and the end-effector pose; the same products term by term, so equal to the last bits that a BLAS kernel's
     own order of a 3- or 4-term sum can change. Batches that are not a multiple of the kernel's block included."""
-    from mpd.robots.chain import KinematicChain
+    from mpd import kernels
 
     chain = gantry(revolute_middle=True) if name == "mixed" else get_robot(name).chain
     q = torch.randn(1500, chain.dof, generator=torch.Generator().manual_seed(8), dtype=dtype) * 1.5
     got = chain.forward(q)
-    monkeypatch.setattr(KinematicChain, "compiled", False)
-    want = chain.forward(q)
+    with kernels.use("torch", "fk"):
+        want = chain.forward(q)
     if chain.translational:
         assert got.frames_t is None and want.frames_t is None
     tol = {"rtol": 0, "atol": 2e-6 if dtype == torch.float32 else 1e-14}
@@ -175,7 +175,6 @@ def test_compiled_fk_pass_is_the_torch_pass(name, dtype, monkeypatch):
         if getattr(want, f) is not None:
             torch.testing.assert_close(getattr(got, f), getattr(want, f), **tol)
     for n in (0, 1, 513):  # an empty batch, one configuration, one past a block
-        monkeypatch.setattr(KinematicChain, "compiled", True)
         k = chain.forward(q[:n], ee=False)
-        monkeypatch.setattr(KinematicChain, "compiled", False)
-        torch.testing.assert_close(k.points_t, chain.forward(q[:n], ee=False).points_t, **tol)
+        with kernels.use("torch", "fk"):
+            torch.testing.assert_close(k.points_t, chain.forward(q[:n], ee=False).points_t, **tol)

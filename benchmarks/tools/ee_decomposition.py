@@ -170,9 +170,6 @@ def _planner(method: str, settings: dict, weights: dict, ee_grad: str):
         inner.cost = CostFunction(
             inner.task, inner.param, inner.env, preset=inner.settings.cost_preset, weights=weights, profile=True
         )
-    for cost, _ in inner.cost.terms if inner.cost is not None else ():
-        if cost.name == "ee_pose":
-            cost.compiled = ee_grad == "exact"
     ee_mod.ee_pose_error = _authors_ee_pose_error if ee_grad == "authors" else _EXACT
     return inner
 
@@ -197,6 +194,7 @@ def _per_sample(task, checker, res, p_goal, r_goal) -> pd.DataFrame:
 
 
 def decompose(n_contexts: int, n_samples: int, out: Path, only: str | None = None) -> pd.DataFrame:
+    from mpd import kernels
     from mpd.collision import CollisionChecker
     from mpd.planners import Context
     from mpd.tasks import load_task
@@ -215,15 +213,19 @@ def decompose(n_contexts: int, n_samples: int, out: Path, only: str | None = Non
             continue
         planner = _planner(method, settings, weights, ee_grad)
         t0 = time.perf_counter()
-        for i in range(len(cs)):
-            f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-            ctx = Context(f32(cs.q_start[i]), None, f32(cs.ee_pos[i]), f32(cs.ee_rot[i]), q_goal_ref=f32(cs.q_goal[i]))
-            res = planner.plan(ctx, n_samples, seed=i)
-            df = _per_sample(task, checker, res, torch.as_tensor(cs.ee_pos[i]), torch.as_tensor(cs.ee_rot[i]))
-            df.insert(0, "context", i)
-            df.insert(0, "variant", name)
-            df.insert(0, "method", method)
-            frames.append(df)
+        # the authors' EE gradient replaces the torch path's ee_pose_error: the EE cost then runs in torch
+        with kernels.use("compiled" if ee_grad == "exact" else "torch", "ee_pose"):
+            for i in range(len(cs)):
+                f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+                ctx = Context(
+                    f32(cs.q_start[i]), None, f32(cs.ee_pos[i]), f32(cs.ee_rot[i]), q_goal_ref=f32(cs.q_goal[i])
+                )
+                res = planner.plan(ctx, n_samples, seed=i)
+                df = _per_sample(task, checker, res, torch.as_tensor(cs.ee_pos[i]), torch.as_tensor(cs.ee_rot[i]))
+                df.insert(0, "context", i)
+                df.insert(0, "variant", name)
+                df.insert(0, "method", method)
+                frames.append(df)
         print(f"{method:12s} {name:34s} {time.perf_counter() - t0:6.1f} s", flush=True)
         pd.concat(frames, ignore_index=True).to_parquet(out)
     return pd.concat(frames, ignore_index=True)

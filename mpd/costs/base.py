@@ -227,3 +227,36 @@ def spheres_vjp_sparse(
 
 
 _SPARSE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain -> {(dtype, device): consts}
+
+
+def parity_case(task_name: str, dtype: torch.dtype, batch: int, seed: int, extra_objects: bool = True) -> tuple:
+    """(task, parametrization, env, free, q_start, q_goal, ee_goal): ``batch`` B-spline trajectories through random
+    configurations of the task's robot (seeded) and their goals (end-effector goals at the poses of random
+    configurations, q_goal None, for a task of such goals, else joint goals and ee_goal None): the inputs of the
+    cost kernels' parity cases (:mod:`mpd.kernels`)."""
+    from mpd.tasks import load_task
+    from mpd.trajectory import make_parametrization
+
+    task = load_task(task_name)
+    param = make_parametrization(task, "bspline")
+    r, g = task.robot, torch.Generator().manual_seed(seed)
+    free = r.random_q(batch * param.n_free, g).view(batch, param.n_free, r.dof).to(dtype)
+    q_start, q_goal = r.random_q(batch, g).to(dtype), r.random_q(batch, g).to(dtype)
+    ee_goal = tuple(x.to(dtype) for x in r.ee_pose(r.random_q(batch, g)))
+    q_goal, ee_goal = (None, ee_goal) if task.ee_goal else (q_goal, None)
+    return task, param, task.env(extra_objects=extra_objects), free, q_start, q_goal, ee_goal
+
+
+def cost_parity(name: str, dtype: torch.dtype, seed: int):
+    """The ``run()`` of a cost kernel's parity case (:mod:`mpd.kernels`): the value and joint gradient of cost
+    ``name`` (weight 2) on 24 Panda trajectories through random configurations of EnvSpheres3D with its extra objects
+    (a fresh cost input each run)."""
+    task, param, env, free, q_start, q_goal, ee_goal = parity_case("EnvSpheres3D-RobotPanda", dtype, 24, seed)
+    cost = COSTS[name](task, "official")
+
+    def run() -> dict:
+        inp = CostInput(param.dense(free, q_start, q_goal), task, env, ee_goal, "nearest")
+        term = cost(inp, 2.0)
+        return {"value": term.value, "g_q": term.g_q}
+
+    return run

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from mpd import kernels
 from mpd.costs import collision_kernel
 from mpd.costs.base import Cost, CostInput, CostTerm, register, spheres_vjp_sparse
 from mpd.costs.sdf import sdf_batch_last
@@ -27,8 +28,6 @@ SPARSE_FRACTION = 0.05
 @register
 class CollisionCost(Cost):
     name = "collision"
-    # the compiled CPU pass for the nearest-node grid (False: the torch path, its reference, everywhere)
-    compiled: bool = True
 
     def __init__(self, task: Task, preset: str = "official"):
         super().__init__(task, preset)
@@ -44,7 +43,7 @@ class CollisionCost(Cost):
         if key not in self._consts:
             self._consts[key] = {"r": (self.robot.sphere_radii + self.margin).to(X)[:, None]}
         w = self.weights(inp)
-        if self.compiled and inp.sdf_mode == "nearest" and collision_kernel.supported(X):
+        if inp.sdf_mode == "nearest" and kernels.active("collision", X):
             # one compiled pass (the torch lines below are its reference)
             chain = self.robot.chain
             fkey = ("frames", X.dtype)

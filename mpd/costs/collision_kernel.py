@@ -12,8 +12,9 @@ which stay in the second-level cache where the whole table (12 MB) did not. The 
 (the gradients and their moments c x g) are accumulated in the same pass (no (S, 3, N) gradient array); the
 joint-axis products stay torch's (:meth:`mpd.robots.chain.Chain.vjp_from_forces`).
 
-``tests/test_costs.py`` pins the kernel to the torch path (values, gradients, the active count) on points inside,
-on the boundary of and outside the grid boxes, with and without extra objects.
+The kernel ``collision`` of :mod:`mpd.kernels`. ``tests/test_costs.py`` pins it to the torch path (values,
+gradients, the active count) on points inside, on the boundary of and outside the grid boxes, with and without extra
+objects.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 import torch
 from numba import njit
 
+from mpd import kernels
 from mpd.envs.grid import GridSDF
 
 
@@ -229,7 +231,7 @@ def _collision_pass(
 def _padded(grid: GridSDF, dtype: torch.dtype) -> tuple[torch.Tensor, np.ndarray, np.ndarray, list[int]]:
     """The grid's packed rows (nodes, 4) as a 3-D grid (a 2-D grid: one layer at z = 0 with a zero z gradient), its
     lo and hi (3,) and its shape (3 entries)."""
-    packed, lo, hi, _, _ = grid._consts(dtype, "cpu")
+    packed, lo, hi, _, _ = grid.consts(dtype, "cpu")
     lo, hi = lo.numpy(), hi.numpy()
     D = grid.dim
     if D < 3:  # the kernel has one 3-D path
@@ -344,11 +346,6 @@ def near_tables(env, grids: list[tuple], dtype: torch.dtype, reach: float | None
     return per_env[key]
 
 
-def supported(X: torch.Tensor) -> bool:
-    """The kernel handles CPU float32 / float64 tensors that need no autograd."""
-    return X.device.type == "cpu" and X.dtype in (torch.float32, torch.float64) and not X.requires_grad
-
-
 def collision_pass(
     env,
     X: torch.Tensor,
@@ -461,3 +458,14 @@ def run_columns(fn, ranges: list[tuple[int, int]]) -> None:
     fn(0, *ranges[0])  # this thread takes the first range
     for f in futures:
         f.result()
+
+
+def _parity(dtype: torch.dtype):
+    from mpd.costs.base import cost_parity
+
+    return cost_parity("collision", dtype, 31), {"rtol": 1e-5, "atol": 1e-6}
+
+
+kernels.register(
+    kernels.Kernel("collision", __name__, "mpd.costs.collision.CollisionCost.__call__ (the torch lines)", _parity)
+)

@@ -29,6 +29,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
+from mpd import kernels
 from mpd.costs import phase_kernel
 from mpd.costs.base import COSTS, PRESETS, SDF_MODES, Cost, CostInput
 from mpd.device import synchronize
@@ -156,7 +157,7 @@ class CostFunction:
         g_ee_last = None
         values: dict[str, torch.Tensor] = {}
         terms, G = self.terms, None
-        if self.fused and phase_kernel.supported(dense.stacked):
+        if self.fused and kernels.active("phase", dense.stacked):
             # G (B, 3, n, dof) holds the phase costs' gradients; the other costs add theirs into it
             t0 = clock()
             w = self.fused[0][0].weights(inp)

@@ -8,6 +8,7 @@ whose time is nearly all per-operation overhead. This pass (numba,
 the FK left it), the error of either preset with the same branches (the series below the same angle, the axis
 from the symmetric part near pi), the gradient and its product with the geometric Jacobian. It computes in float64
 whatever the input's precision and rounds the results once; ``tests/test_costs.py`` pins it to the torch path.
+The kernel ``ee_pose`` of :mod:`mpd.kernels`.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import numpy as np
 import torch
 from numba import njit
 
-from mpd.costs.se3 import _small
+from mpd import kernels
+from mpd.costs.se3 import series_below
 
 
 @njit(cache=True, nogil=True)
@@ -159,11 +161,6 @@ def _ee_pass(F, O, Z, cols, f, R_fix, p_fix, revolute, goal_pos, goal_rot, offic
             g_last[b, k] = weight * s
 
 
-def supported(x: torch.Tensor) -> bool:
-    """The pass handles CPU float32 / float64 tensors that need no autograd."""
-    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and not x.requires_grad
-
-
 def ee_pass(
     chain, kin, cols: torch.Tensor, goal_pos: torch.Tensor, goal_rot: torch.Tensor, preset: str, weight: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -188,9 +185,23 @@ def ee_pass(
         goal_pos.detach().contiguous().numpy(),
         goal_rot.detach().contiguous().numpy(),
         preset == "official",
-        _small(dt),
+        series_below(dt),
         float(weight),
         value,
         g_last,
     )
     return torch.from_numpy(value).to(dt), torch.from_numpy(g_last).to(dt)
+
+
+def _parity(dtype: torch.dtype):
+    from mpd.costs.base import cost_parity
+
+    tol = {"rtol": 2e-4, "atol": 2e-4} if dtype == torch.float32 else {"rtol": 1e-9, "atol": 1e-10}
+    return cost_parity("ee_pose", dtype, 33), tol
+
+
+kernels.register(
+    kernels.Kernel(
+        "ee_pose", __name__, "mpd.costs.ee_pose.ee_pose_error and mpd.robots.robot.Robot.ee_vjp (torch)", _parity
+    )
+)

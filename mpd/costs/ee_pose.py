@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import torch
 
+from mpd import kernels
 from mpd.costs import ee_kernel
 from mpd.costs.base import Cost, CostInput, CostTerm, register
 from mpd.costs.se3 import cross, se3_half_sq_log_grad, se3_log, so3_log
@@ -45,8 +46,6 @@ def ee_pose_error(
 @register
 class EEPoseCost(Cost):
     name = "ee_pose"
-    # the compiled CPU pass (False: the torch path, its reference, everywhere)
-    compiled: bool = True
 
     @classmethod
     def applicable(cls, task: Task) -> bool:
@@ -56,7 +55,7 @@ class EEPoseCost(Cost):
         if inp.ee_goal is None:
             raise ValueError("the end-effector pose cost needs ee_goal=(position (B, 3), rotation (B, 3, 3))")
         q = inp.dense.q
-        if self.compiled and ee_kernel.supported(q):
+        if kernels.active("ee_pose", q):
             kin, cols = inp.final_columns()
             if kin.frames_t is not None:  # one compiled pass (the torch lines below are its reference)
                 goal_pos, goal_rot = (x.to(q.dtype) for x in inp.ee_goal)

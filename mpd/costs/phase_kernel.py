@@ -9,6 +9,7 @@ reads (:meth:`mpd.trajectory.LinearTrajectory.grad_to_free_stacked`), in the fie
 
 The costs say what they ask of it through ``Cost.penalty`` (a :class:`Penalty`); their torch ``__call__`` stays
 the reference, and ``tests/test_costs.py`` pins this pass to it (values and gradients, both presets, fp32 and fp64).
+The kernel ``phase`` of :mod:`mpd.kernels` (its torch mode: each cost's own ``__call__``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 from numba import njit
 
+from mpd import kernels
 from mpd.costs.smoothness import NORM_EPS
 
 
@@ -96,16 +98,6 @@ def _phase_pass(X, w, norm_w, norm_sq, lim_w, lim_on, lo, hi, eps, values, G, sq
                 values[3, b] += half * _wsum(sq, w)
 
 
-def supported(stacked: torch.Tensor | None) -> bool:
-    """The pass handles CPU float32 / float64 fields that need no autograd (in any memory layout)."""
-    return (
-        stacked is not None
-        and stacked.device.type == "cpu"
-        and stacked.dtype in (torch.float32, torch.float64)
-        and not stacked.requires_grad
-    )
-
-
 def phase_pass(
     stacked: torch.Tensor, w: torch.Tensor, penalties: list[tuple[Penalty, float]]
 ) -> tuple[list[torch.Tensor], torch.Tensor]:
@@ -140,3 +132,25 @@ def phase_pass(
     args = (norm_w, norm_sq, lim_w, lim_on, lo, hi, npdt(NORM_EPS), values.numpy(), Gp.numpy(), *scratch)
     _phase_pass(X.numpy(), w.numpy(), *args)
     return [values[k] for k in slots], G
+
+
+def _parity(dtype: torch.dtype):
+    """``run()``: the cost function's total and gradient w.r.t. the free rows (velocity, acceleration and joint
+    limits among its terms) on 24 Panda trajectories through random configurations."""
+    from mpd.costs.base import parity_case
+    from mpd.costs.composite import CostFunction
+
+    task, param, env, free, q_start, q_goal, ee_goal = parity_case("EnvSpheres3D-RobotPanda", dtype, 24, 34)
+    cf = CostFunction(task, param, env, preset="official", sdf_mode="nearest")
+
+    def run() -> dict:
+        res = cf(free, q_start, q_goal, ee_goal)
+        return {"total": res.total, "grad": res.grad, **{k: v for k, v in res.values.items()}}
+
+    tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    return run, tol
+
+
+kernels.register(
+    kernels.Kernel("phase", __name__, "the costs' __call__ (mpd.costs.velocity, acceleration, joint_limits)", _parity)
+)

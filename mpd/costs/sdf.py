@@ -23,7 +23,7 @@ def _nearest(grid: GridSDF, x: torch.Tensor, inside: bool = False) -> tuple[torc
 
     ``inside``: the caller knows that every point lies in the grid box (no clamping, no distance to the box).
     """
-    packed, lo, hi, strides, _ = grid._consts(x.dtype, x.device)
+    packed, lo, hi, strides, _ = grid.consts(x.dtype, x.device)
     S, D, N = x.shape
     # python-side sizes: reading them from device tensors would synchronize a GPU on every lookup
     nmax = [n - 1 for n in grid.shape]

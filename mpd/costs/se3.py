@@ -14,8 +14,9 @@ def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(*torch.broadcast_tensors(a, b), dim=-1)
 
 
-def _small(dtype: torch.dtype) -> float:
-    # below this angle the closed forms lose more digits to cancellation than the series' truncation error
+def series_below(dtype: torch.dtype) -> float:
+    """The angle below which the logarithm's coefficients are their series (also the compiled EE pass's): below it
+    the closed forms lose more digits to cancellation than the series' truncation error."""
     return 0.05 if dtype == torch.float64 else 0.5
 
 
@@ -32,7 +33,7 @@ def so3_log(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     theta = torch.atan2(sin, cos)
     t2 = theta * theta
     series = 1 + t2 / 6 + 7 * t2 * t2 / 360 + 31 * t2 * t2 * t2 / 15120  # theta / sin(theta)
-    scale = torch.where(theta < _small(R.dtype), series, theta / sin.clamp_min(1e-30))
+    scale = torch.where(theta < series_below(R.dtype), series, theta / sin.clamp_min(1e-30))
     phi = scale[..., None] * w
     near_pi = cos < -0.9
     if bool(near_pi.any()):
@@ -55,7 +56,7 @@ def _vinv_coeffs(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     t2 = theta * theta
     c_series = 1 / 12 + t2 / 720 + t2 * t2 / 30240 + t2 * t2 * t2 / 1209600
     dc_series = 1 / 360 + t2 / 7560 + t2 * t2 / 201600
-    small = theta < _small(theta.dtype)
+    small = theta < series_below(theta.dtype)
     t = torch.where(small, torch.ones_like(theta), theta)  # keep the unused branch finite
     half_sin, half_cos = torch.sin(t / 2), torch.cos(t / 2)
     cot = half_cos / half_sin

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from mpd import kernels
 from mpd.costs import self_collision_kernel
 from mpd.costs.base import Cost, CostInput, CostTerm, register, spheres_vjp_sparse
 from mpd.tasks import Task
@@ -56,8 +57,6 @@ def _clusters(members: np.ndarray, x0: np.ndarray, size: int) -> list[np.ndarray
 @register
 class SelfCollisionCost(Cost):
     name = "self_collision"
-    # the compiled CPU pass (False: the torch path, its reference, everywhere)
-    compiled: bool = True
 
     def __init__(self, task: Task, preset: str = "official"):
         super().__init__(task, preset)
@@ -175,7 +174,7 @@ class SelfCollisionCost(Cost):
         N = X.shape[2]
         w = self.weights(inp)
         g_q = X.new_zeros(N, dof)
-        if self.compiled and self_collision_kernel.supported(X):
+        if kernels.active("self_collision", X):
             key = ("kernel", X.dtype)
             if key not in self._consts:
                 r = self.robot

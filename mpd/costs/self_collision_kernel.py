@@ -6,7 +6,8 @@ clusters, then takes the maximum over all sphere pairs of the configurations tha
 the same bounding spheres, the same pairs, the same penetration ``r_i + r_j + eps - d_ij`` and its deepest pair (the
 first of equal ones in the torch path's order), each level a pair at a time over all the configurations still in, loops
 the compiler vectorizes. Given the kinematics it also maps the deepest pairs' gradients to the joints
-(:func:`_pair_vjp`), so the few active configurations need no torch pass.
+(:func:`_pair_vjp`), so the few active configurations need no torch pass. The kernel ``self_collision`` of
+:mod:`mpd.kernels`.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 from numba import njit
 
+from mpd import kernels
 from mpd.costs.collision_kernel import column_ranges, run_columns
 
 
@@ -150,10 +152,6 @@ def _self_pass(
     return na
 
 
-def supported(X: torch.Tensor) -> bool:
-    return X.device.type == "cpu" and X.dtype in (torch.float32, torch.float64) and not X.requires_grad
-
-
 def kernel_args(levels, blocks, used: np.ndarray, radii: np.ndarray, margin: float, dtype) -> tuple:
     """Flat pair arrays from the cost's bounding-sphere levels and exact blocks, in the torch path's order (block by
     block, row-major within a block): the frames' pairs as sphere indices, the clusters' as indices into their
@@ -204,3 +202,18 @@ def self_pass(
     run_columns(one, ranges)
     cfg, bi, bj = torch.from_numpy(np.concatenate([o[:, :mk] for o, mk in zip(out, m)], axis=1))
     return pen, cfg, bi, bj, g_q
+
+
+def _parity(dtype: torch.dtype):
+    from mpd.costs.base import cost_parity
+
+    # a trajectory's value sums its configurations' terms in another order than torch's reduction
+    tol = {"rtol": 2e-5, "atol": 1e-6} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    return cost_parity("self_collision", dtype, 32), tol
+
+
+kernels.register(
+    kernels.Kernel(
+        "self_collision", __name__, "mpd.costs.self_collision.SelfCollisionCost.__call__ (the torch lines)", _parity
+    )
+)

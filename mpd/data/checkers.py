@@ -21,6 +21,7 @@ from typing import Literal
 
 import numpy as np
 
+from mpd import kernels
 from mpd.tasks import Task
 
 CheckerKind = Literal["spheres", "meshes"]
@@ -46,14 +47,14 @@ class SphereChecker:
         self.robot = robot = task.robot
         self.dof = robot.dof
         self.clearance = float(clearance)
-        ch = robot.chain
         # chain constants (the arrays the torch FK folds the fixed joints into)
-        self._rot_terms = ch._rot_terms  # (dof, 3, 9)
-        self._axis_off = ch._axis_off  # (dof, 3, 2)
-        self._off_r = ch._off_r
-        self._axes = ch._axes
+        self._chain = ch = robot.chain.kernel_inputs()
+        self._rot_terms = ch.rot_terms  # (dof, 3, 9)
+        self._axis_off = ch.axis_off  # (dof, 3, 2)
+        self._off_r = ch.off_r
+        self._axes = ch.axes
         self._revolute = ch.revolute
-        self._w = ch._wpoints  # (4 (dof + 1), S): stacked frames [R | p] -> sphere centres
+        self._w = ch.wpoints  # (4 (dof + 1), S): stacked frames [R | p] -> sphere centres
         self._radii = robot.sphere_radii.numpy()
         self._dim = robot.task_dim
         self._thresh = self._radii + self.clearance  # every sphere needs sdf(c) - r > clearance
@@ -73,7 +74,7 @@ class SphereChecker:
         names = self.robot.sphere_links
         self._links = list(dict.fromkeys(names))
         self._group = np.array([self._links.index(n) for n in names])  # link of each sphere
-        frame = self.robot.chain.point_joint + 1  # frame of each sphere (0 = root)
+        frame = self._chain.point_frame  # frame of each sphere (0 = root)
         wb, rb = [], []
         for k in range(len(self._links)):
             sel = self._group == k
@@ -205,29 +206,90 @@ class SphereChecker:
         return env, slf
 
     def valid(self, q: np.ndarray) -> np.ndarray:
-        """Validity flags (M,) of configurations q (M, dof): the compiled kernel (``check`` in numpy is its
-        reference)."""
+        """Validity flags (M,) of configurations q (M, dof): the compiled kernel (``sphere`` of :mod:`mpd.kernels`;
+        ``check`` in numpy is its reference, what the ``torch`` mode runs)."""
         from mpd.data import sphere_kernel
 
         q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, self.dof)
+        if not kernels.active("sphere"):
+            env, slf = self.check(q)
+            return env & slf
         out = np.empty(len(q), dtype=bool)
         sphere_kernel.valid_states(q, self.kernel_constants(), out, False)
         return out
 
     def edge_valid(self, a: np.ndarray, b: np.ndarray, n: int, chunk: int = 32) -> bool:
         """Whether the n states ``edge_states`` checks on the edge a -> b are all valid: the end state, then every
-        ``ceil(n / chunk)``-th state, then the rest, stopping at the first invalid one."""
+        ``ceil(n / chunk)``-th state, then the rest, stopping at the first invalid one (in the ``torch`` mode of
+        :mod:`mpd.kernels`: all n states by ``check``)."""
         from mpd.data import sphere_kernel
 
         a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        if not kernels.active("sphere"):
+            if n <= 0:
+                return True
+            env, slf = self.check(a + np.arange(1, int(n) + 1)[:, None] / int(n) * (b - a))
+            return bool((env & slf).all())
         return bool(sphere_kernel.edge_valid(a, b, int(n), int(chunk), self.kernel_constants()))
 
+    def kernel_inputs(self):
+        """The arrays of :mod:`mpd.data.sphere_kernel` for this checker (a
+        :class:`mpd.data.sphere_kernel.SphereInputs`; the scene in 3-D)."""
+        from mpd.data import sphere_kernel
+
+        dim = self._dim
+        L, nb = len(self._links), self._nb
+        links_frame, links_mid = [], []
+        for k in range(L):
+            col = self._wb[:, k]
+            f = int(np.flatnonzero(col)[-1]) // 4  # the homogeneous 1 marks the link's frame
+            links_frame.append(f)
+            links_mid.append(col[4 * f : 4 * f + 3])
+        obs_c = np.zeros((3, len(self._sr)))
+        obs_c[:dim] = self._sc_t
+        bc, br, bh = self._boxes  # (Nb, dim), (Nb, dim, dim), (Nb, dim)
+        box_r = np.zeros((nb, 3, 3))
+        box_r[:, :dim, :dim] = br
+        box_c = np.zeros((nb, 3))
+        box_c[:, :dim] = bc
+        box_h = np.full((nb, 3), 1e300)
+        box_h[:, :dim] = bh
+        if dim == 2:
+            box_r[:, 2, 2] = 1.0
+        # self-collision pairs grouped by their link pair
+        pairs = self._pairs.reshape(-1, 2)
+        order = np.argsort(self._pair_group, kind="stable") if len(pairs) else np.zeros(0, np.int64)
+        K = len(self._lpairs)
+        lpair_ptr = np.searchsorted(self._pair_group[order], np.arange(K + 1)) if len(pairs) else np.zeros(K + 1)
+        return sphere_kernel.SphereInputs(
+            chain=self._chain,
+            thresh=self._thresh,
+            link_ptr=np.searchsorted(np.sort(self._group), np.arange(L + 1)),
+            link_sph=np.argsort(self._group, kind="stable"),
+            link_frame=np.array(links_frame),
+            link_mid=np.array(links_mid).reshape(L, 3),
+            link_r=self._rb + self.clearance,
+            cull=bool(self._cull),
+            obs_c=obs_c,
+            obs_r=self._sr,
+            box_r=box_r.transpose(1, 2, 0),
+            box_crot=np.einsum("na,nak->kn", box_c, box_r),
+            box_h=box_h.T,
+            corner=float(self._corner),
+            pairs=pairs[order],
+            pair_r2=self._pair_r2[order],
+            lpair_ptr=lpair_ptr,
+            lpairs=self._lpairs,
+            lpair_r2=self._lpair_r**2,
+            flat=dim == 2,
+        )
+
     def kernel_constants(self) -> tuple:
-        """The arrays of :mod:`mpd.data.sphere_kernel` for this checker (built once)."""
+        """The argument tuple of :mod:`mpd.data.sphere_kernel` for this checker (built once)."""
         if self._kernel is None:
             from mpd.data import sphere_kernel
 
-            self._kernel = sphere_kernel.constants(self)
+            self._kernel = sphere_kernel.constants(self.kernel_inputs())
         return self._kernel
 
     def close(self) -> None:

@@ -7,15 +7,23 @@ colliding state, so an edge in collision usually costs a few states. The arithme
 forward kinematics by the chain's Rodrigues terms, per-link bounding spheres for culling, the analytic SDF of
 spheres and rounded boxes, self-collision sphere pairs behind link-pair culling. Only the summation order of a
 few dot products differs, so a state exactly on the clearance boundary (to ~1e-15) may be judged differently;
-``tests/test_data.py`` pins the two implementations to each other on states all over each task's scene.
+``tests/test_data.py`` pins the two implementations to each other on states all over each task's scene. The kernel
+``sphere`` of :mod:`mpd.kernels` (its ``torch`` mode: the numpy checker).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
+
+from mpd import kernels
+
+if TYPE_CHECKING:
+    from mpd.robots.chain import ChainArrays
 
 
 @njit(cache=True, nogil=True)
@@ -251,70 +259,102 @@ def edge_valid(a, b, n, chunk, c) -> bool:
     return True
 
 
-def constants(checker) -> tuple:
-    """The arrays the kernels take, from a built :class:`SphereChecker` (contiguous float64 / int64 / bool; the
-    scene in 3-D: a planar task's obstacles at z = 0, its boxes unbounded along z)."""
-    ch = checker.robot.chain
-    dim = checker._dim
+@dataclass(frozen=True)
+class SphereInputs:
+    """The arrays the kernels read, built by :meth:`mpd.data.checkers.SphereChecker.kernel_inputs` (contiguous
+    float64 / int64 / bool; the scene in 3-D: a planar task's obstacles at z = 0, its boxes unbounded along z).
+
+    ``chain``: the robot's constants (:meth:`mpd.robots.chain.KinematicChain.kernel_inputs`); per sphere its
+    ``thresh`` (radius + clearance); per link the spheres ``link_sph[link_ptr[l]:link_ptr[l + 1]]``, its frame,
+    bounding-sphere centre (in that frame) and culling threshold ``link_r``; ``cull``: whether links are culled; the
+    obstacle spheres (centres (3, Ns), radii) and rounded boxes (rotations (3, 3, Nb), c_n^T R_n (3, Nb), half sizes
+    minus the corner radius (3, Nb), the ``corner`` radius); the self-collision sphere ``pairs`` (P, 2) grouped by
+    link pair (``pair_r2``, ``lpair_ptr``, ``lpairs`` (K, 2), ``lpair_r2``); ``flat``: a planar task."""
+
+    chain: ChainArrays
+    thresh: np.ndarray
+    link_ptr: np.ndarray
+    link_sph: np.ndarray
+    link_frame: np.ndarray
+    link_mid: np.ndarray
+    link_r: np.ndarray
+    cull: bool
+    obs_c: np.ndarray
+    obs_r: np.ndarray
+    box_r: np.ndarray
+    box_crot: np.ndarray
+    box_h: np.ndarray
+    corner: float
+    pairs: np.ndarray
+    pair_r2: np.ndarray
+    lpair_ptr: np.ndarray
+    lpairs: np.ndarray
+    lpair_r2: np.ndarray
+    flat: bool
+
+
+def constants(inp: SphereInputs) -> tuple:
+    """The kernels' argument tuple (``c`` of :func:`valid_states`, :func:`edge_valid`): the arrays of ``inp`` in the
+    order of :func:`_state_ok`, and its scratch arrays."""
+    ch = inp.chain
     f64 = lambda x: np.ascontiguousarray(x, dtype=np.float64)  # noqa: E731
     i64 = lambda x: np.ascontiguousarray(x, dtype=np.int64)  # noqa: E731
-    L = len(checker._links)
-    S = len(checker._radii)
-    links_frame, links_mid = [], []
-    for k in range(L):
-        col = checker._wb[:, k]
-        f = int(np.flatnonzero(col)[-1]) // 4  # the homogeneous 1 marks the link's frame
-        links_frame.append(f)
-        links_mid.append(col[4 * f : 4 * f + 3])
-    obs_c = np.zeros((3, len(checker._sr)))
-    obs_c[:dim] = checker._sc_t
-    bc, br, bh = checker._boxes  # (Nb, dim), (Nb, dim, dim), (Nb, dim)
-    nb = len(bh)
-    box_r = np.zeros((nb, 3, 3))
-    box_r[:, :dim, :dim] = br
-    box_c = np.zeros((nb, 3))
-    box_c[:, :dim] = bc
-    box_h = np.full((nb, 3), 1e300)
-    box_h[:, :dim] = bh
-    if dim == 2:
-        box_r[:, 2, 2] = 1.0
-    box_crot = np.einsum("na,nak->kn", box_c, box_r)
-    # self-collision pairs grouped by their link pair
-    pairs = checker._pairs.reshape(-1, 2)
-    order = np.argsort(checker._pair_group, kind="stable") if len(pairs) else np.zeros(0, np.int64)
-    K = len(checker._lpairs)
-    lpair_ptr = np.searchsorted(checker._pair_group[order], np.arange(K + 1)) if len(pairs) else np.zeros(K + 1)
+    dof, S, L = len(ch.revolute), len(inp.thresh), len(inp.link_frame)
     return (
-        np.ascontiguousarray(checker._revolute, dtype=np.bool_),
-        f64(checker._rot_terms),
-        f64(checker._axis_off),
-        f64(checker._off_r),
-        f64(checker._axes),
-        i64(ch.point_joint + 1),
-        f64(ch._point_local),
-        f64(checker._thresh),
-        i64(np.searchsorted(np.sort(checker._group), np.arange(L + 1))),
-        i64(np.argsort(checker._group, kind="stable")),
-        i64(links_frame),
-        f64(np.array(links_mid).reshape(L, 3)),
-        f64(checker._rb + checker.clearance),
-        bool(checker._cull),
-        f64(obs_c),
-        f64(checker._sr),
-        f64(box_r.transpose(1, 2, 0)),
-        f64(box_crot),
-        f64(box_h.T),
-        float(checker._corner),
-        i64(pairs[order]),
-        f64(checker._pair_r2[order]),
-        i64(lpair_ptr),
-        i64(checker._lpairs),
-        f64(checker._lpair_r**2),
-        dim == 2,
-        np.zeros((checker.dof + 1, 3, 4)),
+        np.ascontiguousarray(ch.revolute, dtype=np.bool_),
+        f64(ch.rot_terms),
+        f64(ch.axis_off),
+        f64(ch.off_r),
+        f64(ch.axes),
+        i64(ch.point_frame),
+        f64(ch.point_local),
+        f64(inp.thresh),
+        i64(inp.link_ptr),
+        i64(inp.link_sph),
+        i64(inp.link_frame),
+        f64(inp.link_mid),
+        f64(inp.link_r),
+        bool(inp.cull),
+        f64(inp.obs_c),
+        f64(inp.obs_r),
+        f64(inp.box_r),
+        f64(inp.box_crot),
+        f64(inp.box_h),
+        float(inp.corner),
+        i64(inp.pairs),
+        f64(inp.pair_r2),
+        i64(inp.lpair_ptr),
+        i64(inp.lpairs),
+        f64(inp.lpair_r2),
+        bool(inp.flat),
+        np.zeros((dof + 1, 3, 4)),
         np.zeros((S, 3)),
         np.zeros((L, 3)),
         np.zeros(S, dtype=np.bool_),
         np.zeros(3),
-        np.zeros(len(checker._sr) + nb),
+        np.zeros(len(inp.obs_r) + inp.box_h.shape[1]),
     )
+
+
+def _parity(dtype):
+    """``run()``: the validity of 400 random Panda configurations in EnvSpheres3D with its extra objects (clearance
+    1 cm) and of 40 edges between them (float64 whatever ``dtype``)."""
+    import torch
+
+    from mpd.data.checkers import SphereChecker
+    from mpd.tasks import load_task
+
+    task = load_task("EnvSpheres3D-RobotPanda")
+    checker = SphereChecker(task, extra_objects=True, clearance=0.01)
+    q = task.robot.random_q(400, torch.Generator().manual_seed(35)).numpy()
+
+    def run() -> dict:
+        edges = [checker.edge_valid(q[k], q[k + 1], 24) for k in range(0, 80, 2)]
+        return {"valid": checker.valid(q), "edges": np.array(edges)}
+
+    return run, {"rtol": 0.0, "atol": 0.0}
+
+
+kernels.register(
+    kernels.Kernel("sphere", __name__, "mpd.data.checkers.SphereChecker.check (numpy)", _parity, ("float64",))
+)

@@ -38,7 +38,9 @@ class GridSDF:
     def nbytes(self) -> int:
         return self._packed.numel() * self._packed.element_size()
 
-    def _consts(self, dtype, device):
+    def consts(self, dtype, device) -> tuple[torch.Tensor, ...]:
+        """(packed rows (nodes, 1 + D): distance and gradient per node, lo (D,), hi (D,), node strides (D,), the
+        largest node index (D,)) in ``dtype`` on ``device`` (made once): what a lookup reads."""
         key = (dtype, str(device))
         if key not in self._cache:
             self._cache[key] = (
@@ -52,7 +54,7 @@ class GridSDF:
 
     def query(self, x: torch.Tensor, mode: str = "nearest") -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance (...) and gradient (..., D) at points x (..., D)."""
-        packed, lo, hi, strides, nmax = self._consts(x.dtype, x.device)
+        packed, lo, hi, strides, nmax = self.consts(x.dtype, x.device)
         xc = torch.minimum(torch.maximum(x, lo), hi)
         u = (xc - lo) / self.cell
         if mode == "nearest":

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from mpd import kernels
 from mpd.robots import exact as _exact
 from mpd.robots import fk_kernel
 
@@ -97,19 +98,37 @@ class Kinematics:
         )
 
 
+@dataclass(frozen=True)
+class ChainArrays:
+    """The constants of a chain that the compiled passes outside torch read (float64 / int64 / bool numpy arrays,
+    read-only; see :meth:`KinematicChain.kernel_inputs`): per movable joint j, the Rodrigues terms
+    [Off_R, Off_R K, Off_R K^2] (dof, 3, 9), the world-axis and origin offsets (dof, 3, 2) against the parent
+    rotation, the fixed rotation Off_R (dof, 3, 3) and the unit axis (dof, 3) in the joint frame; per attached point,
+    its frame (P,) (0 = the root, f = after joint f - 1) and position in that frame (P, 3); and the map from the
+    stacked frames [R_0 p_0 | ... | R_dof p_dof] to the points (4 (dof + 1), P)."""
+
+    revolute: np.ndarray
+    rot_terms: np.ndarray
+    axis_off: np.ndarray
+    off_r: np.ndarray
+    axes: np.ndarray
+    point_frame: np.ndarray
+    point_local: np.ndarray
+    wpoints: np.ndarray
+
+
 class KinematicChain:
     """A serial chain with points attached to its links.
 
-    ``compiled`` (class attribute): the CPU FK of float32 / float64 configurations without autograd runs as one
-    compiled pass (:mod:`mpd.robots.fk_kernel`); False: the torch pass, its reference, everywhere.
+    The CPU FK of float32 / float64 configurations without autograd runs as one compiled pass
+    (:mod:`mpd.robots.fk_kernel`, the kernel ``fk`` of :mod:`mpd.kernels`); in the ``torch`` mode of
+    :func:`mpd.kernels.use`, the torch pass, its reference, everywhere.
 
     Args:
         frames: the chain from the root link to the last link, see :class:`ChainFrame`.
         point_links / point_offsets: the link and link-frame position of every attached point.
         ee_link: the link whose pose is the end-effector pose.
     """
-
-    compiled: bool = True
 
     def __init__(
         self,
@@ -216,6 +235,28 @@ class KinematicChain:
         bounds = offsets[self.point_joint + 1] + np.linalg.norm(self._point_local, axis=1)
         return float(bounds.max()) if len(bounds) else 0.0
 
+    @functools.cached_property
+    def _arrays(self) -> ChainArrays:
+        def ro(a: np.ndarray) -> np.ndarray:
+            a = np.array(a)  # a copy, read-only
+            a.flags.writeable = False
+            return a
+
+        return ChainArrays(
+            revolute=ro(self.revolute),
+            rot_terms=ro(self._rot_terms),
+            axis_off=ro(self._axis_off),
+            off_r=ro(self._off_r),
+            axes=ro(self._axes),
+            point_frame=ro(self.point_joint + 1),
+            point_local=ro(self._point_local),
+            wpoints=ro(self._wpoints),
+        )
+
+    def kernel_inputs(self) -> ChainArrays:
+        """The chain's constants for a compiled pass outside torch (:class:`ChainArrays`, made once)."""
+        return self._arrays
+
     # ------------------------------------------------------------------ constants per dtype/device
     def _c(self, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
         key = (dtype, str(device))
@@ -316,7 +357,7 @@ class KinematicChain:
         c = self._c(q.dtype, q.device)
         mm = _exact.mm if exact else torch.matmul
         B, dof = q.shape[0], self.dof
-        if self.compiled and not exact and fk_kernel.supported(q) and (self._point_blocks is not None or not points):
+        if not exact and (self._point_blocks is not None or not points) and kernels.active("fk", q):
             # the compiled pass (the torch lines below are its reference)
             frame, W = self._kernel_points(q.dtype)
             qt = q.t().contiguous()

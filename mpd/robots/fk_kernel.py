@@ -8,8 +8,9 @@ process; the elementwise kernels were not). This kernel (numba,
 configurations (which the compiler vectorizes): the frames, joint axes, joint origins and attached points in one
 pass, in blocks of configurations that stay in the first-level cache.
 
-``tests/test_costs_chain.py`` pins it to the torch pass (the batch-first formulation and the BLAS products), for
-every robot, in float32 and float64.
+The kernel ``fk`` of :mod:`mpd.kernels`: ``tests/test_costs_chain.py`` pins it to the torch pass (the batch-first
+formulation and the BLAS products), for every robot, in float32 and float64, and ``tests/test_kernels.py`` on the
+Panda through the switch.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 from numba import njit
+
+from mpd import kernels
 
 BLOCK = 512  # configurations per block: the (11, block) scratch of one joint fits the 32 KB first-level cache
 
@@ -97,11 +100,6 @@ def _fk_pass(J, revolute, A, s, co, qt, W, frame, F, axes, origins, pts, P):
                     out[k] = w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k]
 
 
-def supported(q: torch.Tensor) -> bool:
-    """The kernel handles CPU float32 / float64 configurations that need no autograd."""
-    return q.device.type == "cpu" and q.dtype in (torch.float32, torch.float64) and not q.requires_grad
-
-
 def fk_pass(
     J: torch.Tensor,
     revolute: np.ndarray,
@@ -131,3 +129,22 @@ def fk_pass(
         frame[:n_pts], F.numpy(), axes.numpy(), origins.numpy(), pts.numpy(), scratch,
     )  # fmt: skip
     return F, axes, origins, pts if points else None
+
+
+def _parity(dtype: torch.dtype):
+    """The Panda's FK of 600 random configurations (more than a block): frames, axes, origins, points, EE pose."""
+    from mpd.robots.robot import get_robot
+
+    chain = get_robot("RobotPanda").chain
+    q = torch.randn(600, chain.dof, generator=torch.Generator().manual_seed(8), dtype=dtype) * 1.5
+
+    def run() -> dict:
+        k = chain.forward(q)
+        return {f: getattr(k, f) for f in ("frames_t", "axes_t", "origins_t", "points_t", "ee_pos", "ee_rot")}
+
+    return run, {"rtol": 0.0, "atol": 2e-6 if dtype == torch.float32 else 1e-14}
+
+
+kernels.register(
+    kernels.Kernel("fk", __name__, "mpd.robots.chain.KinematicChain._forward_general (the torch pass)", _parity)
+)
