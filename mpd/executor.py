@@ -19,6 +19,7 @@ from typing import Any
 MODES = ("serial", "process", "ray")
 RAY_OPTIONS = {"num_cpus": 1, "max_retries": 3}  # max_retries: Ray reruns an item whose worker died (not an error)
 _POLL_S = 0.2  # how often progress messages are passed on while the pool works
+_PARENT_POLL_S = 1.0  # how often a pool worker looks whether the process that started it is still there
 
 _REPORT: Callable[[Any], None] | None = None  # where `report` sends a message, in this process
 
@@ -51,8 +52,24 @@ def threads(n: int | None):
         torch.set_num_threads(before)
 
 
-def _init_worker(n: int | None, messages) -> None:
+def _exit_with(parent: int) -> None:
+    """Ends this worker when the process that started it is gone (a ``kill -9`` of ``mpd``): a pool worker holds
+    both ends of its task queue, so it would otherwise wait for work forever, with the memory of its imports."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(_PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mpd-parent-watch", daemon=True).start()
+
+
+def _init_worker(n: int | None, messages, parent: int | None = None) -> None:
     global _REPORT
+    if parent is not None:
+        _exit_with(parent)
     if n:
         pin_threads(n)
     if messages is not None:
@@ -121,7 +138,7 @@ def _pool(fn, items: Iterator[tuple], workers: int, n: int | None, progress, nam
         while messages is not None and not messages.empty():
             progress(messages.get())
 
-    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(n, messages))
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(n, messages, os.getpid()))
     try:
         pending = {}
         for item in items:

@@ -80,3 +80,64 @@ def test_local_ray_gives_the_serial_results_with_one_thread_per_worker():
     serial = _results("serial", threads=1)
     assert {k: v[0] for k, v in on_ray.items()} == {k: v[0] for k, v in serial.items()}
     assert {v[1:] for v in on_ray.values()} == {(1, "1")}, "a Ray worker pins one thread when it starts"
+
+
+PARENT = """
+import sys, time
+from mpd import executor
+for item, _ in executor.imap(time.sleep, [(600,), (600,)], mode="process", workers=2, progress=print):
+    pass
+"""
+
+
+def _alive(pid: int) -> bool:
+    """pid is a process that has not exited (a zombie has: its parent has only not collected it yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _pool_workers(pid: int) -> list[int]:
+    """The spawned pool workers among pid's children (not the resource tracker)."""
+    with open(f"/proc/{pid}/task/{pid}/children") as f:
+        children = [int(c) for c in f.read().split()]
+    out = []
+    for c in children:
+        try:
+            with open(f"/proc/{c}/cmdline", "rb") as f:
+                if b"spawn_main" in f.read():
+                    out.append(c)
+        except FileNotFoundError:
+            pass
+    return out
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/task"), reason="reads the process tree from Linux's /proc")
+def test_pool_workers_exit_when_the_process_that_started_them_is_killed():
+    """kill -9 of a process running a pool (an `mpd data generate --workers 2`) leaves no worker behind: each holds
+    both ends of its task queue and would wait forever, with its imports' memory (~0.5 GB for a torch worker)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    p = subprocess.Popen([sys.executable, "-c", PARENT], env={**os.environ, "PYTHONPATH": os.getcwd()})
+    try:
+        deadline = time.monotonic() + 120
+        while len(workers := [c for c in _pool_workers(p.pid) if _alive(c)]) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(workers) == 2, "the pool did not start"
+        time.sleep(1.0)  # killed during their start or after it: a worker that finds its parent gone exits too
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+        deadline = time.monotonic() + 20
+        while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        left = [w for w in workers if _alive(w)]
+        for w in left:
+            os.kill(w, signal.SIGKILL)
+        assert not left, f"{len(left)} pool worker(s) outlived the process that started them"
+    finally:
+        p.kill()
