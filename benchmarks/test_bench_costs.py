@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from mpd.costs import COSTS, CostFunction, CostInput
+from mpd.executor import threads
 from mpd.tasks import load_task
 from mpd.trajectory import make_parametrization
 
@@ -31,10 +32,8 @@ TASK = "EnvSpheres3D-RobotPanda"
 
 @pytest.fixture(autouse=True)
 def two_threads():
-    n = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(n)
+    with threads(2):
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -28,6 +28,7 @@ from cpu_peak import peak_gflops
 from gpu_check import plan_context, random_model  # benchmarks/: the random-weight model and context of the GPU check
 
 from mpd.device import native_bf16, network_precision
+from mpd.executor import threads
 from mpd.planners import make_planner
 from mpd.tasks import load_task
 from mpd.tasks.task import Task
@@ -64,10 +65,8 @@ def bench_planner(task: Task, method: str, **settings):
 
 @pytest.fixture(autouse=True)
 def two_threads():
-    n = torch.get_num_threads()
-    torch.set_num_threads(THREADS)
-    yield
-    torch.set_num_threads(n)
+    with threads(THREADS):
+        yield
 
 
 @pytest.mark.parametrize("network", ["eager", "compiled"])

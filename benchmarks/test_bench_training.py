@@ -25,6 +25,7 @@ import torch
 from cpu_peak import peak_gflops
 
 from mpd.device import Arithmetic, resolve, training_request
+from mpd.executor import threads
 from mpd.models.compiled_step import CompiledStep, cxx_available
 from mpd.models.context import context_shapes
 from mpd.models.train import EagerStep, _Data, _init_network, make_optimizer, training_loss_kwargs
@@ -64,10 +65,8 @@ def _setup(case: str):
 
 @pytest.fixture(autouse=True)
 def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+    with threads(1):
+        yield
 
 
 def _stepper(mode: str, spec, ts, shapes, arithmetic: Arithmetic):

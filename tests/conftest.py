@@ -48,6 +48,16 @@ def pytest_collection_modifyitems(config, items):
         item.add_marker(pytest.mark.xdist_group("ray" if name in RAY_FILES else name))
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """torch's intra-op threads at 1 for a module's tests (``pytestmark = pytest.mark.usefixtures("one_thread")``):
+    their nets and batches are small, and a second thread only adds contention on a 2-core machine."""
+    from mpd.executor import threads
+
+    with threads(1):
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _seed_globals():
     """Code under test takes explicit seeds; this only makes a stray use of a global generator repeatable."""

@@ -28,18 +28,13 @@ from mpd.models.checkpoint import read_checkpoint
 from mpd.models.train import list_models, train_model
 from tests.test_models import TINY, tiny_training, toy_arrays
 
-pytestmark = pytest.mark.skipif(not compiled_step.cxx_available(), reason="inductor needs a C++ compiler")
+pytestmark = [
+    pytest.mark.skipif(not compiled_step.cxx_available(), reason="inductor needs a C++ compiler"),
+    pytest.mark.usefixtures("one_thread"),
+]
 
 LR = 1e-3  # tiny_training's
 FP32 = {"max_abs": 0.5 * LR, "rel": 1e-5}
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _state(path):

@@ -11,13 +11,7 @@ from mpd.data.checkers import SphereChecker, edge_states, path_states, path_vali
 from mpd.data.planning import JointSpacePlanner, PlannerSettings, plan_path, resample_path
 from mpd.tasks import list_tasks, load_task
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.mark.parametrize("task_name", list_tasks())

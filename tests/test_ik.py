@@ -12,14 +12,7 @@ from scipy.spatial.transform import Rotation
 from mpd.robots import get_robot
 from mpd.robots.ik import rotation_log, solve_ik
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # small batches: a second torch thread only adds contention on a shared 2-core machine
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _targets(robot, n, seed):

@@ -43,13 +43,7 @@ from mpd.tasks.spec import ModelSpec, TrainingSpec
 TINY = ModelSpec(unet_dim=16, unet_dim_mults=[1, 2], context_dim=16)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # the machine is shared and has 2 cores: oversubscribed intra-op threads make tiny nets ~10x slower
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def toy_arrays(n: int = 16, horizon: int = 8, dof: int = 2, ee: bool = False, n_val: int = 0, seed: int = 0, **kw):
