@@ -58,7 +58,9 @@ def contexts(task, n: int, source: str) -> tuple[np.ndarray, np.ndarray]:
     return ds.q_start[sel], ds.q_goal[sel]
 
 
-def run(task_name: str, n_contexts: int, n_samples: int, variants: list[str], source: str) -> pd.DataFrame:
+def run(
+    task_name: str, n_contexts: int, n_samples: int, variants: list[str], source: str, model: str | None = None
+) -> pd.DataFrame:
     import mpd
     from mpd.envs.primitives import ObjectSet
     from mpd.tasks import load_task
@@ -68,7 +70,7 @@ def run(task_name: str, n_contexts: int, n_samples: int, variants: list[str], so
     radius = float(task.robot.sphere_radii[0]) if hasattr(task.robot, "sphere_radii") else 0.02
     frames = []
     for name in variants:
-        planner = mpd.load_planner(task_name, "dprior", fast=False, **VARIANTS[name])
+        planner = mpd.load_planner(task_name, "dprior", model=model, fast=False, **VARIANTS[name])
         env = planner._base_env
         one_by_one = [ObjectSet(env.dim, [p], env.fixed.corner_radius) for p in env.fixed.primitives]
         # a box as long as the workspace's half is a wall of the passage
@@ -87,6 +89,7 @@ def run(task_name: str, n_contexts: int, n_samples: int, variants: list[str], so
                         "task": task_name,
                         "contexts": source,
                         "variant": name,
+                        "model": f"{plan.provenance['model_identity']} ({plan.provenance['model_source']})",
                         "context": i,
                         "distance": float(np.linalg.norm(np.asarray(q_goal[i]) - np.asarray(q_start[i]))),
                         "valid": plan.valid,
@@ -103,12 +106,13 @@ def run(task_name: str, n_contexts: int, n_samples: int, variants: list[str], so
 
 def summary(df: pd.DataFrame) -> pd.DataFrame:
     rows = []
-    for (task, source, name), g in df.groupby(["task", "contexts", "variant"], sort=False):
+    for (task, model, source, name), g in df.groupby(["task", "model", "contexts", "variant"], sort=False):
         bad = g[~g.collision_free]
         q = bad.clearance.quantile([0.1, 0.5, 0.9]) * 100 if len(bad) else pd.Series([np.nan] * 3)
         rows.append(
             {
                 "task": task.split("-")[0],
+                "model": model,
                 "contexts": source,
                 "variant": name,
                 "fraction valid %": 100 * g.valid.mean(),
@@ -130,8 +134,9 @@ def by_distance(df: pd.DataFrame, bins=(0.0, 0.5, 1.0, 1.4, 2.0, 3.0)) -> pd.Dat
     """Fraction valid (%) by the contexts' start-goal distance, per context source and sampler variant."""
     d = df.assign(distance=pd.cut(df.distance, list(bins)))
     d["task"] = d.task.str.split("-").str[0]
-    t = d.groupby(["task", "contexts", "variant", "distance"], observed=True).valid.mean().mul(100).round(1)
-    order = d[["task", "contexts", "variant"]].drop_duplicates().apply(tuple, axis=1).tolist()
+    keys = ["task", "model", "contexts", "variant"]
+    t = d.groupby([*keys, "distance"], observed=True).valid.mean().mul(100).round(1)
+    order = d[keys].drop_duplicates().apply(tuple, axis=1).tolist()
     t = t.unstack("distance")
     return t.loc[[o for o in order if o in t.index]]
 
@@ -144,6 +149,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=100)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--contexts-from", default="sampled", choices=["sampled", "train", "held-out", "task"])
+    ap.add_argument("--model", default=None, help="a model identity or checkpoint (default: the shipped prior)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/misses.parquet"))
     if sys.argv[1:2] == ["summary"]:
         df = pd.concat([pd.read_parquet(f) for f in sys.argv[2:]], ignore_index=True)
@@ -153,7 +159,7 @@ def main() -> None:
         print(by_distance(df).to_string())
         return
     args = ap.parse_args()
-    df = run(args.task, args.contexts, args.samples, args.variants, args.contexts_from)
+    df = run(args.task, args.contexts, args.samples, args.variants, args.contexts_from, args.model)
     df.to_parquet(args.out)
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 20)
