@@ -42,15 +42,14 @@ def ema_weight(ts: TrainingSpec, step: int) -> float:
 def apply_ema(ema_params: Iterable[torch.Tensor], params: Iterable[torch.Tensor], w: float | torch.Tensor) -> None:
     """Move the EMA's weights ``w`` of the way to the weights: a copy for 1, nothing for 0, a lerp otherwise. A
     tensor ``w`` (a captured step's, written before each replay) is always one lerp, whatever its value."""
-    if not isinstance(w, torch.Tensor) and w == 0.0:
-        return
-    for pe, pm in zip(ema_params, params):
-        if isinstance(w, torch.Tensor):
+    ema_params, params = list(ema_params), list(params)
+    if isinstance(w, torch.Tensor):
+        for pe, pm in zip(ema_params, params):
             pe.lerp_(pm, w)
-        elif w == 1.0:
-            pe.copy_(pm)
-        else:
-            pe.lerp_(pm, w)
+    elif w == 1.0:
+        torch._foreach_copy_(ema_params, params)
+    elif w != 0.0:
+        torch._foreach_lerp_(ema_params, params, w)
 
 
 class StepBody:
