@@ -71,7 +71,7 @@ def run(
     frames = []
     for name in variants:
         planner = mpd.load_planner(task_name, "dprior", model=model, fast=False, **VARIANTS[name])
-        env = planner._base_env
+        env = planner.scene()
         one_by_one = [ObjectSet(env.dim, [p], env.fixed.corner_radius) for p in env.fixed.primitives]
         # a box as long as the workspace's half is a wall of the passage
         kinds = ["wall" if p.kind == "box" and max(p.half_size) > 0.4 else p.kind for p in env.fixed.primitives]

@@ -488,15 +488,12 @@ def _resume_state(
 class Checkpointer:
     """Writes a training's files: ``last.pt`` every ``checkpoint_every`` steps (and when interrupted or stopped),
     the stable-phase snapshots of a ``wsd`` trunk, and at the end ``meta.json`` then ``model.pt`` (which replaces
-    ``last.pt``). Every file carries ``record`` (what made the model); the wall time counts from :meth:`start`."""
+    ``last.pt``). Every file carries ``record`` (what made the model); the wall time counts from its creation."""
 
     def __init__(self, out: Path, record: dict[str, Any], ts: TrainingSpec, trunk: _Trunk | None):
         self.out, self.record, self.ts, self.trunk = out, record, ts, trunk
         self.last_path = out / LAST_FILE
-        self.t0 = time.perf_counter()
-
-    def start(self) -> None:
-        self.t0 = time.perf_counter()
+        self.t0 = time.perf_counter()  # the wall time of this call counts from here
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.t0
@@ -722,7 +719,6 @@ def train_model(
     _record_execution(record, mode, _execution_record(resumed, state.step, mode), device)
 
     checkpointer = Checkpointer(claim.out, record, ts, trunk)
-    checkpointer.start()
     state.net.train()
     _run_steps(step_fn, state, ts, end, val, seed, checkpointer, bar)
     bar.close()
@@ -800,28 +796,7 @@ def make_optimizer(net: nn.Module, ts: TrainingSpec) -> torch.optim.Optimizer:
     return torch.optim.AdamW(net.parameters(), lr=ts.lr, weight_decay=ts.weight_decay, fused=fused)
 
 
-def steps_per_second(net: nn.Module, x: torch.Tensor, context: dict[str, torch.Tensor], n_steps: int = 10) -> float:
-    """Training steps/s of ``net`` on one fixed batch (forward, backward, AdamW step); for sizing profiles."""
-    opt = make_optimizer(net, TrainingSpec(batch_size=x.shape[0], steps=n_steps))
-    g = torch.Generator(device=x.device).manual_seed(0)
-
-    def one() -> None:
-        loss = net.loss(x, context, g)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(net.parameters(), 1.0)
-        opt.step()
-
-    one()
-    synchronize(x.device)
-    t0 = time.perf_counter()
-    for _ in range(n_steps):
-        one()
-    synchronize(x.device)
-    return n_steps / (time.perf_counter() - t0)
-
-
 __all__ = [
     "EagerStep", "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity",
-    "network_identity", "stable_steps", "steps_per_second", "train_model", "training_loss_kwargs", "trunk_identity",
+    "network_identity", "stable_steps", "train_model", "training_loss_kwargs", "trunk_identity",
 ]  # fmt: skip
