@@ -1159,3 +1159,40 @@ def test_one_exponential_mish_is_mish(dtype):
     (g_want,) = torch.autograd.grad(want.sum(), x)
     assert torch.isfinite(g_got).all()
     torch.testing.assert_close(g_got, g_want, rtol=64 * eps, atol=64 * eps)
+
+
+def test_min_start_goal_distance_trains_on_the_long_contexts_only(tmp_path):
+    """The option's samples, against a loop over the contexts; the excluded samples never reach the weights (their
+    paths shuffled among themselves: the same normalization, bit-identical weights; unfiltered, other weights)."""
+    from mpd.models.train import model_identity, training_indices
+
+    arrays = toy_arrays(n=24, n_val=4)
+    ts = tiny_training(min_start_goal_distance=1.0)
+    kept = [
+        i for i in range(24)
+        if arrays.split[i] == 0 and math.dist(arrays.context["q_goal"][i], arrays.context["q_start"][i]) >= 1.0
+    ]  # fmt: skip
+    assert 0 < len(kept) < 20 and training_indices(arrays, ts).tolist() == kept
+    assert training_indices(arrays, tiny_training()).tolist() == list(range(20))
+    assert model_identity("h", "diffusion", "bspline", {}, TINY, tiny_training(), 0) == model_identity(
+        "h", "diffusion", "bspline", {}, TINY, tiny_training(min_start_goal_distance=0.0), 0
+    )  # 0 is the paper: the identities of the models trained before the option stay
+    assert model_identity("h", "diffusion", "bspline", {}, TINY, ts, 0) != model_identity(
+        "h", "diffusion", "bspline", {}, TINY, tiny_training(), 0
+    )
+    dropped = [i for i in range(20) if i not in kept]
+    shuffled = toy_arrays(n=24, n_val=4, dataset_hash="data1")
+    shuffled.x[dropped] = arrays.x[dropped[::-1]]
+    weights = {}
+    for name, arr, spec in [("a", arrays, ts), ("b", shuffled, ts), ("a_all", arrays, tiny_training()),
+                            ("b_all", shuffled, tiny_training())]:  # fmt: skip
+        weights[name] = read_checkpoint(train_model(arr, "diffusion", TINY, spec, progress=False, cache=tmp_path))
+    assert all(torch.equal(weights["a"]["weights"][k], weights["b"]["weights"][k]) for k in weights["a"]["weights"])
+    assert any(not torch.equal(weights["a_all"]["weights"][k], weights["b_all"]["weights"][k])
+               for k in weights["a_all"]["weights"])  # fmt: skip
+    assert weights["a"]["training_spec"]["min_start_goal_distance"] == 1.0
+    with pytest.raises(ValueError, match="min_start_goal_distance = 1.0: Toy has an end-effector goal"):
+        train_model(toy_arrays(ee=True), "diffusion", TINY, ts, progress=False, cache=tmp_path)
+    for d, why in [(9.0, "9.0: no training context of Toy"), (-1.0, "-1.0 is not allowed")]:
+        with pytest.raises(ValueError, match=f"min_start_goal_distance = {why}"):
+            train_model(arrays, "diffusion", TINY, tiny_training(min_start_goal_distance=d), cache=tmp_path)

@@ -73,7 +73,7 @@ NETWORK_VERSION = 2
 # defaults, so that the models trained before they existed keep their identity (and their cache folder)
 LATER_TRAINING_FIELDS = (
     "decay_fraction", "loss_weighting", "min_snr_gamma", "precision", "t_sampling", "t_grid_fraction",
-    "goal_row_weight", "kl_warmup_steps",
+    "goal_row_weight", "kl_warmup_steps", "min_start_goal_distance",
 )  # fmt: skip
 
 
@@ -173,6 +173,22 @@ class _Data:
 
     def __len__(self) -> int:
         return int(self.x.shape[0])
+
+
+def training_indices(arrays: TrainingArrays, ts: TrainingSpec) -> np.ndarray:
+    """The samples a training draws from: the training split, less the contexts whose start and goal are closer than
+    ``ts.min_start_goal_distance`` (joint-space goals only; raises ValueError naming the field otherwise)."""
+    idx = arrays.indices(SPLIT_TRAIN)
+    d = ts.min_start_goal_distance
+    if d <= 0:
+        return idx
+    if "q_goal" not in arrays.context:
+        raise ValueError(
+            f"training.min_start_goal_distance = {d!r}: {arrays.task_name} has an end-effector goal, not a joint "
+            "configuration to measure the distance to; use 0"
+        )
+    gap = np.linalg.norm(arrays.context["q_goal"][idx] - arrays.context["q_start"][idx], axis=-1)
+    return idx[gap >= d]
 
 
 def _to_device(
@@ -318,6 +334,7 @@ def check_training_spec(ts: TrainingSpec) -> None:
         "checkpoint_every": ts.checkpoint_every >= 1,
         "warmup_steps": ts.warmup_steps >= 0,
         "kl_warmup_steps": ts.kl_warmup_steps >= 0,
+        "min_start_goal_distance": math.isfinite(ts.min_start_goal_distance) and ts.min_start_goal_distance >= 0,
     }
     bad = [k for k, ok in checks.items() if not ok]
     if bad:
@@ -338,6 +355,13 @@ def _checked_spec(
         raise ValueError(f"training needs steps >= 1 and batch_size >= 1, got {training_spec}")
     check_training_spec(training_spec)
     arrays.validate()
+    if training_spec.min_start_goal_distance > 0:
+        n = len(training_indices(arrays, training_spec))
+        if n == 0:
+            raise ValueError(
+                f"training.min_start_goal_distance = {training_spec.min_start_goal_distance!r}: no training context "
+                f"of {arrays.task_name} has its start and goal that far apart"
+            )
     if kind != "diffusion":  # a diffusion-loss option: the CVAE neither uses it nor carries it in its identity
         return dataclasses.replace(training_spec, goal_row_weight=1.0)
     ts = dataclasses.replace(training_spec, kl_warmup_steps=0)  # and the other way round: a CVAE-loss option
@@ -682,7 +706,7 @@ def train_model(
     device = torch.device(device) if device is not None else default_device()
 
     x_norm, ctx_norms = fit_normalizers(arrays)
-    train = _to_device(arrays, arrays.indices(SPLIT_TRAIN), x_norm, ctx_norms, device)
+    train = _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device)
     val = _to_device(arrays, arrays.indices(SPLIT_VAL)[:VAL_MAX_SAMPLES], x_norm, ctx_norms, device)
     record = _base_record(arrays, kind, identity, model_spec, ts, seed, x_norm, ctx_norms)
     trunk = _Trunk.of(arrays, kind, model_spec, ts, seed, cache)

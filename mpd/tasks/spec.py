@@ -240,6 +240,12 @@ class TrainingSpec:
     # from the first step (the authors). A remedy for posterior collapse, the decoder ignoring its latent, which a
     # cpu-profile CVAE of EnvSpheres3D showed (reports/eval-panda-cpu); a diffusion model's identity never carries it.
     kl_warmup_steps: int = 0
+    # train on the dataset's training contexts whose start and goal are at least this far apart in joint space (the
+    # norm of q_goal - q_start; joint-space goals only); 0: all of them (the paper). The evaluations draw only
+    # contexts at least the task's `context.min_start_goal_distance` apart, ~30 % of the point-mass data, and the
+    # `cpu` priors fit those long motions worst (reports/prior-misses-2d): a study option of the CPU budgets. The
+    # normalization and the validation loss keep every context.
+    min_start_goal_distance: float = 0.0
 
 
 @dataclass(frozen=True)
