@@ -205,3 +205,33 @@ def test_authors_grid_lookup_reads_the_node_they_read():
     frac = (x[:200, 0] - lo[0]) / (hi[0] - lo[0])
     assert set(np.unique(off)) <= {0, 1}
     assert off[frac < 0.25].mean() < 0.5 < off[frac > 0.75].mean()
+    # their cost reads the value and the gradient of that same node (sdf_mode = "authors" of the collision cost)
+    d, g = env.sdf(torch.as_tensor(x), grad=True, mode="authors")
+    ref_d, ref_g = env.sdf(torch.as_tensor(nodes), grad=True)
+    assert np.allclose(d.numpy(), ref_d.numpy(), atol=1e-12) and np.allclose(g.numpy(), ref_g.numpy(), atol=1e-12)
+
+
+def test_the_collision_cost_with_the_authors_lookup_reads_their_node():
+    """The collision cost in sdf_mode "authors" (a measurement of the authors' cost field): for the point mass, value
+    sum_n w_n relu(r + eps - d(q_n)) and gradient -w_n grad d(q_n) where active, with d and grad d read at their node
+    (checked above against numpy), written out here; the nearest-node cost differs."""
+    from mpd.costs.base import CostInput
+    from mpd.costs.collision import CollisionCost
+    from mpd.trajectory import make_parametrization
+
+    task = load_task("EnvNarrowPassageDense2D-RobotPointMass2D")
+    param, env = make_parametrization(task), task.env(False)
+    gen = torch.Generator().manual_seed(0)
+    free = torch.rand(64, param.n_free, task.dof, generator=gen, dtype=torch.float64) * 1.6 - 0.8
+    q0, q1 = torch.full((64, 2), -0.8, dtype=torch.float64), torch.full((64, 2), 0.8, dtype=torch.float64)
+    dense = param.dense(free, q0, q1)
+    cost = CollisionCost(task)
+    term = cost(CostInput(dense, task, env, None, "authors"))
+    w = cost.weights(CostInput(dense, task, env, None, "authors"))  # (n,) quadrature weights
+    d, g = env.sdf(dense.q, grad=True, mode="authors")  # (B, n), (B, n, 2)
+    depth = task.robot.sphere_radii[0] + task.spec.collision.cost_margin - d
+    assert (depth > 0).any() and (depth <= 0).any()
+    assert torch.allclose(term.value, (depth.clamp_min(0) * w).sum(-1), rtol=1e-10)
+    assert torch.allclose(term.g_q, -(depth > 0).double()[..., None] * w[:, None] * g, rtol=1e-10, atol=1e-14)
+    nearest = cost(CostInput(dense, task, env, None, "nearest"))
+    assert not torch.allclose(term.value, nearest.value)

@@ -27,7 +27,7 @@ from mpd.tasks import Task
 from mpd.trajectory import Dense
 
 PRESETS = ("official", "paper")
-SDF_MODES = ("nearest", "trilinear", "analytic")
+SDF_MODES = ("nearest", "trilinear", "analytic", "authors")
 
 COSTS: dict[str, type[Cost]] = {}
 
@@ -59,7 +59,8 @@ class CostInput:
         task: the task (robot, margins).
         env: the environment the collision costs see (training scene or with extra objects).
         ee_goal: (position (B, 3), rotation (B, 3, 3)) of the end-effector goal, or None.
-        sdf_mode: ``nearest`` (the paper's grid lookup), ``trilinear`` or ``analytic``.
+        sdf_mode: ``nearest`` (the paper's grid lookup), ``trilinear``, ``analytic`` or ``authors`` (their
+            off-by-one lookup: a measurement).
     """
 
     dense: Dense

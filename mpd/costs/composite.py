@@ -62,7 +62,8 @@ class CostFunction:
         env: the environment the collision cost sees.
         preset: ``official`` or ``paper`` (see the module docstring).
         weights: overrides of the preset's weights: a :class:`CostWeights` or a dict ``{name: weight}``.
-        sdf_mode: ``nearest`` (the paper), ``trilinear`` or ``analytic``.
+        sdf_mode: ``nearest`` (the paper), ``trilinear``, ``analytic`` or ``authors`` (their off-by-one
+            lookup: a measurement).
         profile: record the wall time of every cost (FK included as its own entry) in the result.
 
     Costs with weight 0 or nothing to act on (the EE cost on a joint-goal task, self collision when

@@ -76,7 +76,7 @@ class Environment:
         env.obstacles = self.obstacles + prims
         env._base = self._base or self  # the fixed objects' grid is read from (and built in) the base scene
         env._grids = {k: v for k, v in self._grids.items() if k == "fixed"}
-        env._authors_grids = {k: v for k, v in self._authors_grids.items() if k == "fixed"}
+        env._authors_grids = {k: v for k, v in self._authors_grids.items() if k.split("+")[0] == "fixed"}
         return env
 
     @property
@@ -107,12 +107,12 @@ class Environment:
             if mode == "analytic":
                 r = objs.sdf(x, grad=grad)
                 d, g = r if grad else (r, None)
-            elif mode == "authors":  # the authors' lookup (a measurement only; values, no gradient)
-                if grad:
-                    raise ValueError("the authors' grid lookup is for validity measurements only (no gradient)")
-                if name not in self._authors_grids:
-                    self._authors_grids[name] = AuthorsGridSDF(objs, *self.workspace, self.spec.sdf_cell_size)
-                d, g = self._authors_grids[name].query(x), None
+            elif mode == "authors":  # the authors' lookup (a measurement: their validity verdicts, their cost)
+                key = f"{name}+grad" if grad else name
+                if key not in self._authors_grids:
+                    self._authors_grids[key] = AuthorsGridSDF(objs, *self.workspace, self.spec.sdf_cell_size, grad)
+                grid = self._authors_grids[key]
+                d, g = grid.query_grad(x) if grad else (grid.query(x), None)
             else:
                 d, g = self.grid(name).query(x, mode)
             if best_d is None:

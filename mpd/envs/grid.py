@@ -84,10 +84,12 @@ class AuthorsGridSDF:
     ``n = ceil(extent / cell)`` nodes per axis at ``linspace(lo, hi, n)`` (spacing extent / (n - 1)) hold the exact SDF;
     a point reads node ``clamp(round((x - lo) / extent * n), 0, n - 1)``, which in the upper half of each axis is one
     node beyond the nearest (``docs/PAPER_VS_CODE.md``, "SDF grid"). Points outside the box read the boundary
-    node. Value only.
+    node. With ``grad`` the nodes also hold the exact gradient, which the authors' collision cost reads at the same
+    node as the value (their ``get_sdf_and_gradient``): the cost's ``sdf_mode = "authors"``, a measurement of what
+    their lookup does to the guidance (``reports/cost-grid-authors``).
     """
 
-    def __init__(self, objects: ObjectSet, lo, hi, cell: float):
+    def __init__(self, objects: ObjectSet, lo, hi, cell: float, grad: bool = False):
         self.dim = objects.dim
         self.lo = np.asarray(lo, dtype=np.float64)
         self.hi = np.asarray(hi, dtype=np.float64)
@@ -96,14 +98,31 @@ class AuthorsGridSDF:
             torch.linspace(float(l), float(h), n, dtype=torch.float64) for l, h, n in zip(self.lo, self.hi, self.shape)
         ]
         nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
-        self._values = objects.sdf(nodes).reshape(-1)
+        if grad:
+            d, g = objects.sdf(nodes, grad=True)
+            self._values, self._grads = d.reshape(-1), g.reshape(-1, self.dim)
+        else:
+            self._values, self._grads = objects.sdf(nodes).reshape(-1), None
         self._strides = torch.as_tensor([int(np.prod(self.shape[k + 1 :])) for k in range(self.dim)])
 
-    def query(self, x: torch.Tensor) -> torch.Tensor:
+    def _flat(self, x: torch.Tensor) -> torch.Tensor:
         lo = torch.as_tensor(self.lo, dtype=x.dtype, device=x.device)
         ext = torch.as_tensor(self.hi - self.lo, dtype=x.dtype, device=x.device)
         n = torch.as_tensor(self.shape, device=x.device)
         idx = torch.round((x - lo) / ext * n).long()
         idx = torch.minimum(torch.maximum(idx, torch.zeros_like(idx)), n - 1)
-        flat = (idx * self._strides.to(x.device)).sum(-1)
+        return (idx * self._strides.to(x.device)).sum(-1)
+
+    def query(self, x: torch.Tensor) -> torch.Tensor:
+        """The value at the node the authors read, for points x (..., D)."""
+        flat = self._flat(x)
         return self._values.to(device=x.device, dtype=x.dtype).index_select(0, flat.reshape(-1)).reshape(flat.shape)
+
+    def query_grad(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Value (...) and gradient (..., D) at the node the authors read (a grid built with ``grad``)."""
+        if self._grads is None:
+            raise ValueError("this authors' grid holds no gradients (build it with grad=True)")
+        flat = self._flat(x).reshape(-1)
+        d = self._values.to(device=x.device, dtype=x.dtype).index_select(0, flat).reshape(x.shape[:-1])
+        g = self._grads.to(device=x.device, dtype=x.dtype).index_select(0, flat).reshape(x.shape)
+        return d, g

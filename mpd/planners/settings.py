@@ -88,7 +88,10 @@ class PlannerSettings:
     opt_grad_clip: float | None = 1.0
     # -- costs ---------------------------------------------------------------------------------------------------
     cost_preset: Literal["official", "paper"] = "official"
-    sdf_mode: Literal["nearest", "trilinear", "analytic"] = "nearest"
+    # the collision cost's SDF lookup: the nearest node of mpd's grid (the paper's "nearest point in the grid"), the
+    # trilinear interpolation, the exact SDF, or "authors": the authors' grid read with their off-by-one index (value
+    # and gradient of one node; a measurement of their cost field, reports/cost-grid-authors)
+    sdf_mode: Literal["nearest", "trilinear", "analytic", "authors"] = "nearest"
     # -- GP prior (GPprior+Cost) ------------------------------------------------------------------------------------
     gp_prior: Literal["authors", "bridge"] = "authors"  # the authors' end-point GP regressor, or mpd's earlier bridge
     gp_sigma: float = 0.3  # bridge only: prior std of the free control points, unit-normalized space
