@@ -64,9 +64,10 @@ def _convert(tp: Any, value: Any, source: Any, where: str) -> Any:
         if value is None and type(None) in args:
             return None
         errors = []
-        for a in args:
-            if a is type(None):
-                continue
+        alternatives = [a for a in args if a is not type(None)]
+        if len(alternatives) == 1:  # X | None: X's own error, which names the inner field
+            return _convert(alternatives[0], value, source, where)
+        for a in alternatives:
             try:
                 return _convert(a, value, source, where)
             except ConfigError as e:
