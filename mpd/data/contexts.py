@@ -44,7 +44,7 @@ class SampledContext:
     source: int  # 0 uniform, 1 goal from a pose region, 2 start and goal from two pose regions
 
 
-SOURCES = ("uniform", "region_goal", "region_pair")
+SOURCES = ("uniform", "region_goal", "region_pair", "problem")  # "problem": a benchmark problem's (ProblemSettings)
 
 
 def sample_region_pose(region: PoseRegionSpec, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

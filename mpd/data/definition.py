@@ -60,6 +60,33 @@ class SplitSettings:
 
 
 @dataclass(frozen=True)
+class ProblemSettings:
+    """Contexts taken from a benchmark's problems instead of sampled (``[problems]`` of a definition): context i is
+    the i mod n-th of the n selected problems, planned in that problem's own scene; a problem's repeats (i // n) are
+    planned with their own seeds, so they give different paths. Only ``source = "mbm"`` (the MotionBenchMaker Panda
+    problems, :mod:`mpd.data.mbm`) exists: ``families`` (empty: all seven), ``first`` and ``last`` (the problem
+    indices kept, 1 to 100, inclusive), and how the scene is read (``grasp_target``, ``cylinder_slabs``)."""
+
+    source: Literal["mbm"] = "mbm"
+    families: tuple[str, ...] = ()
+    first: int = 1
+    last: int = 50
+    grasp_target: Literal["obstacle", "ignored"] = "ignored"
+    cylinder_slabs: int = 4
+
+    def validate(self) -> None:
+        from mpd.data.mbm import FAMILIES
+
+        bad = [f for f in self.families if f not in FAMILIES]
+        if bad:
+            raise ValueError(f"families: unknown {bad[0]!r} (one of {', '.join(FAMILIES)})")
+        if not 1 <= self.first <= self.last <= 100:
+            raise ValueError(f"first and last must satisfy 1 <= first <= last <= 100, got {self.first}, {self.last}")
+        if self.cylinder_slabs < 1:
+            raise ValueError("cylinder_slabs must be >= 1")
+
+
+@dataclass(frozen=True)
 class DatasetDefinition:
     name: str
     task: str  # task name or path to a task file
@@ -71,6 +98,7 @@ class DatasetDefinition:
     checker: CheckerSettings = field(default_factory=CheckerSettings)
     contexts: ContextSettings = field(default_factory=ContextSettings)
     split: SplitSettings = field(default_factory=SplitSettings)
+    problems: ProblemSettings | None = None  # contexts from a benchmark's problems (None: sampled from the task)
 
     def validate(self) -> None:
         if self.n_contexts < 1:
@@ -182,6 +210,15 @@ def identity_of(defn: DatasetDefinition, task: Task) -> str:
     if content["planner"].get("max_checks") == 0:
         # the definitions without a check budget keep their identities (and their data)
         del content["planner"]["max_checks"]
+    if content.get("problems") is None:
+        # the definitions of sampled contexts keep their identities (and their data)
+        content.pop("problems", None)
+    else:
+        from mpd.data.mbm import FORMAT_VERSION, SHIPPED_SHA256
+
+        # the problems' source enters the identity: the archive and the importer's format
+        content["problems"]["archive_sha256"] = SHIPPED_SHA256
+        content["problems"]["format"] = FORMAT_VERSION
     return stable_hash(content, task_data_hash(task), file_sha256(robot_file(task)), GENERATOR_VERSION)
 
 

@@ -69,6 +69,44 @@ def _tools(rd: ResolvedDefinition):
     return _CACHE[rd.identity]
 
 
+def problem_list(rd: ResolvedDefinition) -> list:
+    """The benchmark problems a definition with ``[problems]`` takes its contexts from (context i: the i mod n-th),
+    each with the object left out of its scene (``grasp_target = "ignored"``) or None."""
+    key = ("problems", rd.identity)
+    if key not in _CACHE:
+        from mpd.data import mbm
+
+        ps = rd.definition.problems
+        imp = mbm.import_problems()
+        out = []
+        for fam in ps.families or mbm.FAMILIES:
+            for p in imp.problems(fam):
+                if ps.first <= p.index <= ps.last:
+                    left = None
+                    if ps.grasp_target == "ignored":
+                        left = mbm.grasped_object(p, mbm.grasp_points(rd.task.robot, [p.goal])[0])
+                    out.append((p, left))
+        _CACHE[key] = out
+    return _CACHE[key]
+
+
+def _problem_tools(rd: ResolvedDefinition, k: int):
+    """Planner and ground-truth checker of the k-th problem's own scene, once per process."""
+    key = ("problem-tools", rd.identity, k)
+    if key not in _CACHE:
+        from mpd.collision import CollisionChecker
+        from mpd.data.checkers import SphereChecker
+        from mpd.data.planning import JointSpacePlanner
+
+        d, task = rd.definition, rd.task
+        p, left = problem_list(rd)[k]
+        env = task.env().with_obstacles(p.primitives(d.problems.cylinder_slabs, without=left))
+        checker = SphereChecker(task, clearance=rd.clearance, env=env)
+        planner = JointSpacePlanner(checker, d.planner, task.spec.trajectory.n_points, store_dtype=np.float32)
+        _CACHE[key] = (planner, CollisionChecker(task, env=env, margin=0.0))
+    return _CACHE[key]
+
+
 def compute_chunk(rd: ResolvedDefinition, i: int, progress=None) -> tuple[dict[str, np.ndarray], dict]:
     """The arrays of chunk i and its run-dependent figures (times)."""
     import torch
@@ -103,7 +141,18 @@ def compute_chunk(rd: ResolvedDefinition, i: int, progress=None) -> tuple[dict[s
     # every context from its own stream; their IK problems (end-effector goals) solved in batches: the same
     # contexts as one at a time. The sampling time of the chunk is spread evenly over its contexts.
     t0 = time.perf_counter()
-    sampled = sampler.sample_many([np.random.default_rng([d.seed, idx]) for idx in range(start, stop)])
+    which = None  # per context, the index of its benchmark problem (definitions with [problems])
+    if d.problems is not None:
+        from mpd.data.contexts import SOURCES, SampledContext
+
+        problems = problem_list(rd)
+        which = np.arange(start, stop) % len(problems)
+        src = SOURCES.index("problem")
+        sampled = [
+            SampledContext(np.asarray(problems[j][0].start), np.asarray(problems[j][0].goal), src) for j in which
+        ]
+    else:
+        sampled = sampler.sample_many([np.random.default_rng([d.seed, idx]) for idx in range(start, stop)])
     ctx_time[:] = (time.perf_counter() - t0) / n
     for k, idx in enumerate(range(start, stop)):
         c = sampled[k]
@@ -112,6 +161,15 @@ def compute_chunk(rd: ResolvedDefinition, i: int, progress=None) -> tuple[dict[s
             _report(progress, False)
             continue
         out["q_start"][k], out["q_goal"][k], out["source"][k] = c.q_start, c.q_goal, c.source
+        if which is not None:
+            planner, truth_k = _problem_tools(rd, int(which[k]))
+            ends = truth_k.configs(torch.as_tensor(np.stack([c.q_start, c.q_goal]), dtype=torch.float64)).valid
+            if not ends.all():
+                # a benchmark's start or goal may lie beyond mpd's joint limits, which OMPL only finds by running to
+                # its time limit
+                out["status"][k] = STATUSES.index("invalid_start" if not ends[0] else "invalid_goal")
+                _report(progress, False)
+                continue
         r = planner.plan(c.q_start, c.q_goal, problem_seed(d.seed, idx))
         plan_time[k] = r.time
         for attempt in range(1, POST_CHECK_ATTEMPTS):
@@ -140,7 +198,13 @@ def compute_chunk(rd: ResolvedDefinition, i: int, progress=None) -> tuple[dict[s
         fitted = np.flatnonzero(ok)[np.isfinite(w).all(axis=(1, 2))]
         if len(fitted):
             dense = torch.as_tensor(param.basis @ out["control_points"][fitted].astype(np.float64))
-            out["fit_free"][fitted] = truth.trajectories(dense).collision_free.numpy()
+            if which is None:
+                out["fit_free"][fitted] = truth.trajectories(dense).collision_free.numpy()
+            else:  # each fit in its own problem's scene
+                for j in np.unique(which[fitted]):
+                    sel = which[fitted] == j
+                    free = _problem_tools(rd, int(j))[1].trajectories(dense[torch.as_tensor(sel)]).collision_free
+                    out["fit_free"][fitted[sel]] = free.numpy()
     if task.ee_goal:
         has = ~np.isnan(out["q_goal"][:, 0])
         out["ee_pos"] = np.full((n, 3), np.nan)
