@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from mpd.envs.primitives import Primitive, quat_wxyz_to_matrix
-from mpd.planners.inputs import PlanningInputError, as_array, check_configuration, shape_of
+from mpd.planners.inputs import PlanningInputError, as_array, check_configuration, float32_within, shape_of
 
 # The network path a planner of the API runs by default: compiled (torch.compile, frozen weights) in bf16 where the
 # device computes it natively, else fp32 (PlannerSettings.network_precision = "auto"). Each batch size compiles once
@@ -305,13 +305,16 @@ class MotionPlanner:
         if q_goal is not None:
             check_configuration(self.task, q_goal, "goal", checker)
         f32 = lambda a: None if a is None else torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+        # the configurations in float32, a configuration on a joint limit kept on it (not rounded beyond)
+        lo, hi = self.task.robot.q_min.double().numpy(), self.task.robot.q_max.double().numpy()
+        fq = lambda a: None if a is None else torch.as_tensor(float32_within(a, lo, hi))  # noqa: E731
         if self.task.ee_goal:
             if q_goal is not None:
                 p, r = self.task.robot.ee_pose(torch.as_tensor(q_goal, dtype=torch.float64))
                 p_goal, r_goal = p.numpy(), r.numpy()
-            ctx = Context(f32(qs), None, f32(p_goal), f32(r_goal), q_goal_ref=f32(q_goal))
+            ctx = Context(fq(qs), None, f32(p_goal), f32(r_goal), q_goal_ref=fq(q_goal))
         else:
-            ctx = Context(f32(qs), f32(q_goal))
+            ctx = Context(fq(qs), fq(q_goal))
 
         t0 = time.perf_counter()
         self._planner.use_environment(env)

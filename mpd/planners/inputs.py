@@ -49,6 +49,15 @@ def as_array(value: Any, argument: str, shape: tuple[int, ...]) -> np.ndarray:
     return a
 
 
+def float32_within(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``q`` in float32, each entry the float32 nearest to it that lies within [lo, hi] (float64 bounds): a
+    configuration on a joint limit (MotionBenchMaker's goals, e.g.) would otherwise round to just beyond it, and every
+    trajectory ending there would break the limit by 1e-7 rad."""
+    x = np.asarray(q, dtype=np.float32)
+    x = np.where(x.astype(np.float64) < lo, np.nextafter(x, np.float32(np.inf)), x)
+    return np.where(x.astype(np.float64) > hi, np.nextafter(x, np.float32(-np.inf)), x).astype(np.float32)
+
+
 def check_configuration(task, q: np.ndarray, argument: str, checker=None) -> None:
     """A joint configuration within the limits and, with a ground-truth ``checker`` (:class:`CollisionChecker`),
     free of collisions with its scene and of self collisions."""
