@@ -24,6 +24,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("mpd.experiments",),
     ("mpd.viz",),
     ("mpd.api",),
+    ("mpd.bench",),
     ("mpd.cli",),
 )
 # (importing module, imported layer's package): known exceptions; none since the verbs moved into mpd/cli/

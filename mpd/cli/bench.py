@@ -1,6 +1,8 @@
 """``mpd bench``: public benchmarks. ``mpd bench mbm import`` reads the MotionBenchMaker Panda problems into the
 cache and reports the validity of their starts and goals under mpd's checker; ``mpd bench mbm run`` runs the
-RRTConnect baseline on them (resumable) and writes an OMPL benchmark database (Planner Arena)."""
+RRTConnect baseline on them (resumable) and writes an OMPL benchmark database (Planner Arena); ``mpd bench mbm
+prior`` runs a planner with a learned prior (MPD, ...) on the held-out problems; ``mpd bench mbm db`` puts run
+folders side by side in one database."""
 
 from __future__ import annotations
 
@@ -126,3 +128,84 @@ def run(out_dir, source, families, cylinder_slabs, grasp_target, limit, time_lim
             ok = sum(r["success"] for r in rows)
             click.echo(f"{fam:<18} solved {ok}/{len(rows)}")
     click.echo(f"database: {db}")
+
+
+@mbm.command("prior")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option(
+    "--method", default="mpd", show_default=True, help="a planner with a model: mpd, dprior, dprior-cost, ..."
+)
+@click.option("--model", required=True, help="the prior: a model identity (or prefix) or a checkpoint path")
+@_FAMILIES
+@_SLABS
+@click.option(
+    "--grasp-target",
+    type=click.Choice(["obstacle", "ignored"]),
+    default="ignored",
+    show_default=True,
+    help="the object a goal grasps: an obstacle or left out of the scene (as in datasets/mbm/MBM-RobotPanda-cpu)",
+)
+@click.option("--first", type=click.IntRange(1, 100), default=51, show_default=True, help="first problem index")
+@click.option("--last", type=click.IntRange(1, 100), default=100, show_default=True, help="last problem index")
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="the first N of those problems per family")
+@click.option("--n-samples", type=click.IntRange(min=1), default=100, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--eager", is_flag=True, help="the eager fp32 network instead of the compiled one")
+@click.option("--threads", type=click.IntRange(min=1), default=None, help="torch CPU threads")
+def prior(
+    out_dir, method, model, families, cylinder_slabs, grasp_target, first, last, limit, n_samples, seed, eager, threads
+) -> None:
+    """A planner with a learned prior (trained on datasets/mbm/MBM-RobotPanda-cpu: problems 1-50) on the held-out
+    problems, each problem's scene given at plan time; one JSON line each in OUT_DIR/results.jsonl (a rerun
+    resumes), then OUT_DIR/benchmark.db."""
+    import torch
+
+    from mpd import bench as bench_run
+    from mpd.experiments import mbm as mbm_run
+
+    if threads:
+        torch.set_num_threads(threads)
+    fams = _families(families)
+    imp = _import(None, False, fams)
+    try:
+        settings = mbm_run.PriorSettings(
+            method=method,
+            model=model,
+            n_samples=n_samples,
+            seed=seed,
+            first=first,
+            last=last,
+            cylinder_slabs=cylinder_slabs,
+            grasp_target=grasp_target,
+            fast=not eager,
+        )
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+
+    def show(r: dict) -> None:
+        t = f"{r['time_s']:.3f} s" if r["time_first_s"] is not None else "-"
+        fv = f"{r['fraction_valid']:.0%} valid" if r["fraction_valid"] is not None else ""
+        click.echo(f"{r['family']}/{r['index']:04d}  {r['status']:<13} {t} {fv}")
+
+    try:
+        recs = bench_run.run_prior(imp, out_dir, settings, fams, limit, progress=show)
+    except ValueError as e:
+        raise click.UsageError(str(e)) from None
+    db = mbm_run.write_database(out_dir)
+    for fam in fams or imp.families:
+        rows = [r for r in recs if r["family"] == fam]
+        if rows:
+            click.echo(f"{fam:<18} solved {sum(r['success'] for r in rows)}/{len(rows)}")
+    click.echo(f"database: {db}")
+
+
+@mbm.command("db")
+@click.argument("db_path", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("folders", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
+def db(db_path, folders) -> None:
+    """One OMPL benchmark database of several run folders (each a planner configuration, e.g. RRTConnect and MPD),
+    for Planner Arena."""
+    from mpd.experiments import mbm as mbm_run
+
+    out = mbm_run.write_database(folders[0], db_path, more=tuple(folders[1:]))
+    click.echo(f"database: {out}")

@@ -30,6 +30,7 @@ import numpy as np
 
 from mpd.data import benchmark_db
 from mpd.data.mbm import CYLINDER_SLABS, FAMILIES, GRASP_TARGETS, Imported, grasp_points, grasped_object
+from mpd.paths import DATASETS_DIR
 
 RESULTS = "results.jsonl"
 PROVENANCE = "provenance.json"
@@ -57,6 +58,46 @@ class BaselineSettings:
         return (
             f"time_limit={self.time_limit};check_step={self.check_step};range=default;simplify=max;clearance=0;"
             f"grasp_target={self.grasp_target};"
+        )
+
+
+# the task the MBM priors are trained for (one for all families; datasets/mbm/)
+PRIOR_TASK = DATASETS_DIR / "mbm" / "MBM-RobotPanda.toml"
+
+
+@dataclass(frozen=True)
+class PriorSettings:
+    """A planner with a learned prior (``method``: mpd, dprior, dprior-cost, cvae, ...; any of ``mpd planners list``)
+    on MBM's problems ``first``..``last`` of each family (the held-out half of ``datasets/mbm/MBM-RobotPanda-cpu``
+    by default), each problem's scene given at plan time (:meth:`mpd.api.MotionPlanner.plan`), ``n_samples``
+    trajectories per problem. ``model``: the prior's identity (or a prefix of it, or a checkpoint path)."""
+
+    method: str = "mpd"
+    model: str = ""
+    n_samples: int = 100
+    seed: int = 0
+    first: int = 51
+    last: int = 100
+    cylinder_slabs: int = CYLINDER_SLABS
+    grasp_target: str = "ignored"
+    fast: bool = True  # the compiled network (bf16 where the CPU has it), mpd.api.load_planner's default
+
+    def __post_init__(self):
+        if self.grasp_target not in GRASP_TARGETS:
+            raise ValueError(f"grasp_target {self.grasp_target!r} (one of {', '.join(GRASP_TARGETS)})")
+        if not 1 <= self.first <= self.last <= 100:
+            raise ValueError(f"problems {self.first}..{self.last}: need 1 <= first <= last <= 100")
+        if self.n_samples < 1:
+            raise ValueError(f"n_samples must be positive, got {self.n_samples}")
+
+    @property
+    def planner(self) -> str:
+        return f"mpd_{self.method}"
+
+    def planner_settings(self) -> str:
+        return (
+            f"model={self.model};n_samples={self.n_samples};fast={self.fast};problems={self.first}-{self.last};"
+            f"cylinder_slabs={self.cylinder_slabs};grasp_target={self.grasp_target};"
         )
 
 
@@ -153,22 +194,14 @@ def run_baseline(
     and skipping the problems already there (with the same settings: another setting needs another folder)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    meta_path = out / "settings.json"
     meta = {"baseline": "RRTConnect", "settings": asdict(settings), "mbm_identity": imported.identity}
-    if meta_path.is_file():
-        old = json.loads(meta_path.read_text())
-        if old != meta:
-            raise ValueError(f"{out} holds results of other settings ({old}); use another folder")
-    else:
-        tmp = meta_path.with_name(f"settings.json.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(meta, indent=1) + "\n")
-        os.replace(tmp, meta_path)
+    settings_file(out, meta, BaselineSettings)
     done = {(r["family"], r["index"]) for r in read_results(out)}
     fams = tuple(FAMILIES if families is None else families)
     todo = [(fam, p) for fam in fams for p in imported.problems(fam)[:limit] if (fam, p.index) not in done]
     if not todo:
         return read_results(out)
-    record = _record_machine(out)
+    record = record_machine(out)
     with open(out / RESULTS, "a") as fh:
         for fam, p in todo:
             rec = run_problem(imported, fam, p, settings)
@@ -179,6 +212,19 @@ def run_baseline(
             if progress is not None:
                 progress(rec)
     return read_results(out)
+
+
+def settings_file(out: Path, meta: dict, cls) -> None:
+    """Write ``settings.json``, or check that the folder's results were made with these settings (missing fields
+    read as their defaults)."""
+    path = out / "settings.json"
+    if path.is_file():
+        old = json.loads(path.read_text())
+        same = old.get("baseline") == meta["baseline"] and old.get("mbm_identity") == meta["mbm_identity"]
+        if not same or cls(**old["settings"]) != cls(**meta["settings"]):
+            raise ValueError(f"{out} holds results of other settings ({old}); use another folder")
+    else:
+        _write_json(path, meta)
 
 
 def machine() -> dict:
@@ -209,7 +255,7 @@ def read_provenance(out_dir: str | Path) -> list[dict]:
     return json.loads(f.read_text())["invocations"] if f.is_file() else []
 
 
-def _record_machine(out: Path):
+def record_machine(out: Path):
     """Add this invocation to ``provenance.json`` (written again after each problem: its count and last time)."""
     entries = read_provenance(out)
     entry = {**machine(), "started": _now(), "finished": None, "problems": 0}
@@ -245,104 +291,156 @@ ATTRIBUTES = {
     "mpd_smoothness": "REAL",
     "graph_states": "INTEGER",
     "valid_checks": "INTEGER",
+    "fraction_valid": "REAL",
     "problem": "INTEGER",
 }
 
 
-def write_database(out_dir: str | Path, db_path: str | Path | None = None) -> Path:
-    """The run folder's results as an OMPL benchmark database (one experiment per family, one run per problem):
-    ``time`` is the time to the first solution (to the rejection of an invalid start or goal),
-    ``correct_solution`` mpd's checker's verdict on the path. The ``experiments`` table names the CPUs the runs
-    planned on (``provenance.json``), OMPL's version, the base seed and the time limit; the same, with the
-    per-problem seeds' rule and the counts, goes to the JSON sidecar ``benchmark.json`` beside the database."""
+def _folder(out: Path) -> dict:
+    """What a run folder contributes to a database: its planner, settings, records and machines."""
+    meta = json.loads((out / "settings.json").read_text())
+    if meta["baseline"] == "prior":
+        s = PriorSettings(**meta["settings"])
+        planner, timelimit = s.planner, 0.0
+        seed_rule = f'problem_seed("mbm", {s.seed}, "<family>/<NNNN>") (mpd.data.planning), the plan\'s seed'
+        label = f"{s.method} (model {meta.get('model_identity', s.model)}, {s.n_samples} samples)"
+    else:
+        s = BaselineSettings(**meta["settings"])
+        planner, timelimit = PLANNER, s.time_limit
+        seed_rule = f'problem_seed("mbm", {s.seed}, "<family>/<NNNN>") (mpd.data.planning), OMPL\'s seed'
+        label = f"RRTConnect, limit {s.time_limit} s"
+    return {
+        "dir": out,
+        "meta": meta,
+        "settings": s,
+        "planner": planner,
+        "planner_settings": s.planner_settings(),
+        "timelimit": timelimit,
+        "seed_rule": seed_rule,
+        "label": label,
+        "records": read_results(out),
+        "machines": read_provenance(out),
+    }
+
+
+def _run_attributes(r: dict) -> dict:
+    first = r["time_first_s"]
+    return {
+        "time": first if first is not None else r["time_s"],
+        "solved": r["success"],
+        "status": _STATUS.get(r["status"], 0),
+        "approximate_solution": False,
+        "correct_solution": r["valid_mpd"],
+        "simplification_time": r["time_s"] - first if first is not None and r["success"] else None,
+        "solution_length": r["path_length"],
+        "mpd_smoothness": r["smoothness"],
+        "graph_states": r.get("n_vertices"),
+        "valid_checks": r.get("checks"),
+        "fraction_valid": r.get("fraction_valid"),
+        "problem": r["index"],
+    }
+
+
+def write_database(out_dir: str | Path, db_path: str | Path | None = None, more: tuple[str | Path, ...] = ()) -> Path:
+    """Run folders' results as an OMPL benchmark database (one experiment per family, one run per problem and
+    folder; each folder a planner configuration: ``out_dir`` and the folders of ``more``, e.g. RRTConnect beside
+    MPD). ``time`` is the time to the first solution (RRTConnect's solve; a prior's whole plan; the rejection of an
+    invalid start or goal), ``correct_solution`` mpd's checker's verdict on the path (a prior: on its best
+    trajectory), ``fraction_valid`` a prior's valid share of its batch. The ``experiments`` table names the CPUs the
+    runs planned on (``provenance.json``), OMPL's version, the base seed and the time limit (0: none); the same,
+    with the per-problem seeds' rule and the counts, goes to the JSON sidecar ``benchmark.json`` beside the
+    database."""
     import mpd
 
     out = Path(out_dir)
-    meta = json.loads((out / "settings.json").read_text())
-    s = BaselineSettings(**meta["settings"])
-    recs = read_results(out)
-    machines = read_provenance(out)
+    folders = [_folder(Path(d)) for d in (out, *more)]
+    machines = [m for f in folders for m in f["machines"]]
     here = machine() if not machines else None
     cpus = sorted({m["cpu"] for m in machines}) if machines else [here["cpu"]]
     hosts = sorted({m["hostname"] for m in machines}) if machines else [here["hostname"]]
     ompls = sorted({m["ompl"] for m in machines}) if machines else [here["ompl"]]
-    date = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime((out / RESULTS).stat().st_mtime))
-    seed_rule = f'problem_seed("mbm", {s.seed}, "<family>/<NNNN>") (mpd.data.planning), per problem in results.jsonl'
+    stamps = [(f["dir"] / RESULTS).stat().st_mtime for f in folders if (f["dir"] / RESULTS).is_file()]
+    date = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(max(stamps) if stamps else time.time()))
+    seeds = sorted({f["settings"].seed for f in folders})
     exps = []
-    counts = {}
+    counts: dict[str, dict] = {}
     for fam in FAMILIES:
-        rows = sorted((r for r in recs if r["family"] == fam), key=lambda r: r["index"])
-        if not rows:
+        runs, total = [], 0.0
+        for f in folders:
+            rows = sorted((r for r in f["records"] if r["family"] == fam), key=lambda r: r["index"])
+            if not rows:
+                continue
+            counts.setdefault(f["planner"], {})[fam] = {
+                "problems": len(rows),
+                "solved": sum(bool(r["success"]) for r in rows),
+                "valid_mpd": sum(bool(r["valid_mpd"]) for r in rows),
+                "timeout": sum(r["status"] in ("timeout", "budget") for r in rows),
+                "invalid_start": sum(r["status"] == "invalid_start" for r in rows),
+                "invalid_goal": sum(r["status"] == "invalid_goal" for r in rows),
+            }
+            runs += [(f["planner"], f["planner_settings"], _run_attributes(r)) for r in rows]
+            total += float(sum(r["time_s"] for r in rows))
+        if not runs:
             continue
-        counts[fam] = {
-            "problems": len(rows),
-            "solved": sum(bool(r["success"]) for r in rows),
-            "valid_mpd": sum(bool(r["valid_mpd"]) for r in rows),
-            "timeout": sum(r["status"] in ("timeout", "budget") for r in rows),
-            "invalid_start": sum(r["status"] == "invalid_start" for r in rows),
-            "invalid_goal": sum(r["status"] == "invalid_goal" for r in rows),
-        }
-        runs = []
-        for r in rows:
-            first = r["time_first_s"]
-            runs.append(
-                (
-                    PLANNER,
-                    s.planner_settings(),
-                    {
-                        "time": first if first is not None else r["time_s"],
-                        "solved": r["success"],
-                        "status": _STATUS.get(r["status"], 0),
-                        "approximate_solution": False,
-                        "correct_solution": r["valid_mpd"],
-                        "simplification_time": r["time_s"] - first if first is not None and r["success"] else None,
-                        "solution_length": r["path_length"],
-                        "mpd_smoothness": r["smoothness"],
-                        "graph_states": r["n_vertices"],
-                        "valid_checks": r["checks"],
-                        "problem": r["index"],
-                    },
-                )
-            )
+        s0 = folders[0]["settings"]
         exps.append(
             benchmark_db.Experiment(
                 name=f"mbm_panda_{fam}",
-                timelimit=s.time_limit,
+                timelimit=max(f["timelimit"] for f in folders),
                 version=" + ".join(f"OMPL {v}" for v in ompls),
                 hostname=" + ".join(hosts),
                 cpuinfo=" + ".join(cpus),
                 date=date,
-                seed=s.seed,
+                seed=" ".join(str(x) for x in seeds),
                 setup=(
-                    f"MotionBenchMaker {fam} (Panda), mpd {mpd.__version__}, problems {imported_note(meta)}; "
-                    f"sphere model, cylinders as {s.cylinder_slabs} boxes, grasped object {s.grasp_target}; "
-                    f"seeds {seed_rule}; time to the first solution, limit {s.time_limit} s (timeouts depend on the "
-                    "CPU)"
+                    f"MotionBenchMaker {fam} (Panda), mpd {mpd.__version__}, "
+                    f"problems {imported_note(folders[0]['meta'])}; "
+                    f"sphere model, cylinders as {s0.cylinder_slabs} boxes, grasped object {s0.grasp_target}; "
+                    + "; ".join(f"{f['planner']}: {f['label']}, seeds {f['seed_rule']}" for f in folders)
+                    + "; time to the first solution (RRTConnect's timeouts depend on the CPU)"
                 ),
-                totaltime=float(sum(r["time_s"] for r in rows)),
+                totaltime=total,
                 attributes=ATTRIBUTES,
                 runs=runs,
-                parameters={"family": fam, "grasp_target": s.grasp_target},
+                parameters={"family": fam, "grasp_target": s0.grasp_target},
             )
         )
     db = benchmark_db.write(out / "benchmark.db" if db_path is None else db_path, exps)
     sidecar = {
         "database": db.name,
-        "baseline": meta["baseline"],
-        "planner": PLANNER,
-        "planner_settings": s.planner_settings(),
-        "settings": asdict(s),
-        "time_limit_s": s.time_limit,
+        "planners": [
+            {
+                "planner": f["planner"],
+                "folder": str(f["dir"]),
+                "baseline": f["meta"]["baseline"],
+                "planner_settings": f["planner_settings"],
+                "settings": asdict(f["settings"]),
+                "model_identity": f["meta"].get("model_identity"),
+                "seeds": f["seed_rule"],
+            }
+            for f in folders
+        ],
         "time_limit_note": "RRTConnect stops at the limit: which problems time out depends on the CPU and its load",
-        "seed": s.seed,
-        "seeds": seed_rule,
-        "mbm_identity": meta["mbm_identity"],
+        "mbm_identity": folders[0]["meta"]["mbm_identity"],
         "ompl": ompls,
         "cpus": cpus,
         "machines": machines or [here],
         "date": date,
         "families": counts,
     }
+    if len(folders) == 1:  # the single-folder sidecar's fields, as before
+        f = folders[0]
+        sidecar.update(
+            baseline=f["meta"]["baseline"],
+            planner=f["planner"],
+            planner_settings=f["planner_settings"],
+            settings=asdict(f["settings"]),
+            seed=f["settings"].seed,
+            seeds=f["seed_rule"],
+            families=counts[f["planner"]],
+        )
+        if isinstance(f["settings"], BaselineSettings):
+            sidecar["time_limit_s"] = f["settings"].time_limit
     _write_json(db.with_name(SIDECAR), sidecar)
     return db
 
