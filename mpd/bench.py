@@ -18,7 +18,9 @@ def load_prior_planner(settings: PriorSettings):
     """The planner of ``settings`` on :data:`PRIOR_TASK`, warmed up."""
     from mpd.api import load_planner
 
-    planner = load_planner(PRIOR_TASK, settings.method, model=settings.model or None, fast=settings.fast)
+    planner = load_planner(
+        PRIOR_TASK, settings.method, model=settings.model or None, fast=settings.fast, sdf_mode=settings.sdf_mode
+    )
     planner.warmup(settings.n_samples)
     return planner
 

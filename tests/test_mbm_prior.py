@@ -216,3 +216,42 @@ def test_a_goal_on_a_joint_limit_ends_every_trajectory_within_the_limits(prior):
     end = plan.q[:, -1]
     assert ((end >= lo) & (end <= hi)).all()
     np.testing.assert_allclose(end, np.broadcast_to(p.goal, end.shape), atol=1e-6)
+
+
+def test_a_plan_time_scene_s_truncated_grid_is_exact_below_tau_and_leaves_the_cost_unchanged():
+    """The grid of obstacles given at plan time is built around the objects only (a truncated SDF): exact below
+    PLAN_TIME_GRID_TRUNCATION, and the collision cost (value and gradient) the same as on the full grid."""
+    from mpd.costs import CostFunction
+    from mpd.envs.environment import PLAN_TIME_GRID_TRUNCATION as TAU
+    from mpd.envs.grid import GridSDF
+    from mpd.tasks import load_task
+    from mpd.trajectory import make_parametrization
+
+    task = load_task(TASK)
+    p = mbm.import_problems().problems("cage")[50]
+    env = task.env().with_obstacles(p.primitives())
+    truncated = env.grid("extra")
+    assert truncated.truncate == TAU
+    full = GridSDF(env.extra, *env.workspace, task.spec.environment.sdf_cell_size)
+    a, b = truncated._packed, full._packed
+    near = b[:, 0] < TAU
+    assert 0.02 < near.float().mean() < 0.5
+    torch.testing.assert_close(a[near], b[near], rtol=0, atol=0)
+    assert (a[~near, 0] == TAU).all()
+    # the collision cost of random trajectories around the cage, on each grid
+    param = make_parametrization(task, "bspline")
+    rng = torch.Generator().manual_seed(0)
+    B, n_free = 64, param.n_free
+    q_start = torch.as_tensor(p.start, dtype=torch.float32).expand(B, -1)
+    q_goal = torch.as_tensor(p.goal, dtype=torch.float32).expand(B, -1)
+    s = torch.linspace(0, 1, n_free + 2)[1:-1, None]
+    free = q_start[:, None] * (1 - s) + q_goal[:, None] * s + 0.6 * torch.randn(B, n_free, task.dof, generator=rng)
+    results = []
+    for grid in (truncated, full):
+        e = task.env().with_obstacles(p.primitives())
+        e._grids["extra"] = grid
+        results.append(CostFunction(task, param, e, preset="official", sdf_mode="nearest")(free, q_start, q_goal))
+    (rt, rf) = results
+    assert (rf.values["collision"] > 0).sum() > B // 4  # the trajectories do touch the cage
+    torch.testing.assert_close(rt.total, rf.total, rtol=0, atol=0)
+    torch.testing.assert_close(rt.grad, rf.grad, rtol=0, atol=0)

@@ -17,22 +17,56 @@ from mpd.envs.primitives import ObjectSet
 
 
 class GridSDF:
-    def __init__(self, objects: ObjectSet, lo, hi, cell: float, dtype: torch.dtype = torch.float32):
+    def __init__(
+        self, objects: ObjectSet, lo, hi, cell: float, dtype: torch.dtype = torch.float32, truncate: float | None = None
+    ):
+        """``truncate``: a distance tau; the nodes farther than tau from every object hold tau (gradient 0) instead
+        of their distance, and each object is evaluated only on the nodes of its bounding box grown by tau (a
+        truncated SDF: exact below tau, built in time proportional to the objects' neighbourhoods instead of the
+        workspace). A cost or check that reads only distances below tau is unchanged by it."""
         self.dim = objects.dim
         self.cell = float(cell)
         self.lo = np.asarray(lo, dtype=np.float64)
         self.shape = tuple(int(math.ceil((h - l) / cell - 1e-9)) + 1 for l, h in zip(self.lo, hi))
         self.hi = self.lo + (np.array(self.shape) - 1) * self.cell
+        self.truncate = truncate
         axes = [
             torch.as_tensor(self.lo[k] + self.cell * np.arange(n), dtype=torch.float64)
             for k, n in enumerate(self.shape)
         ]
-        nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
-        d, g = objects.sdf(nodes, grad=True)
+        if truncate is None:
+            nodes = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
+            d, g = objects.sdf(nodes, grad=True)
+        else:
+            d, g = self._truncated(objects, axes, float(truncate))
         # one row per node: [sdf, grad_0, .., grad_D-1] so that a lookup is a single gather
         self._packed = torch.cat([d[:, None], g], 1).to(dtype).contiguous()
         self._strides = [int(np.prod(self.shape[k + 1 :])) for k in range(self.dim)]
         self._cache: dict[tuple, tuple] = {}
+
+    def _truncated(self, objects: ObjectSet, axes: list[torch.Tensor], tau: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Distances and gradients of every node, each object evaluated on the block of nodes within tau of its
+        bounding box; a running minimum in the objects' order (ties keep the earlier object, as ``ObjectSet.sdf``)."""
+        d = torch.full(self.shape, tau, dtype=torch.float64)
+        g = torch.zeros((*self.shape, self.dim), dtype=torch.float64)
+        for p in objects.primitives:
+            if p.kind == "sphere":
+                lo_p, hi_p = p.centre - p.radius, p.centre + p.radius
+            else:
+                ext = np.abs(np.asarray(p.rotation if p.rotation is not None else np.eye(self.dim))) @ p.half_size
+                lo_p, hi_p = p.centre - ext, p.centre + ext
+            k0 = np.clip(np.floor((lo_p - tau - self.lo) / self.cell).astype(int), 0, np.array(self.shape) - 1)
+            k1 = np.clip(np.ceil((hi_p + tau - self.lo) / self.cell).astype(int), 0, np.array(self.shape) - 1)
+            if (k1 < k0).any():
+                continue
+            sub = [a[i : j + 1] for a, i, j in zip(axes, k0, k1)]
+            nodes = torch.stack(torch.meshgrid(*sub, indexing="ij"), -1)
+            dp, gp = ObjectSet(self.dim, [p], objects.corner_radius).sdf(nodes, grad=True)
+            block = tuple(slice(i, j + 1) for i, j in zip(k0, k1))
+            closer = dp < d[block]
+            d[block] = torch.where(closer, dp, d[block])
+            g[block] = torch.where(closer[..., None], gp, g[block])
+        return d.reshape(-1), g.reshape(-1, self.dim)
 
     @property
     def nbytes(self) -> int:

@@ -81,6 +81,9 @@ class PriorSettings:
     cylinder_slabs: int = CYLINDER_SLABS
     grasp_target: str = "ignored"
     fast: bool = True  # the compiled network (bf16 where the CPU has it), mpd.api.load_planner's default
+    # the collision cost's signed distance (PlannerSettings.sdf_mode): the nearest node of a grid, built for each
+    # problem's scene (a truncated grid: mpd.envs.environment.PLAN_TIME_GRID_TRUNCATION), as in the paper
+    sdf_mode: str = "nearest"
 
     def __post_init__(self):
         if self.grasp_target not in GRASP_TARGETS:
@@ -97,7 +100,7 @@ class PriorSettings:
     def planner_settings(self) -> str:
         return (
             f"model={self.model};n_samples={self.n_samples};fast={self.fast};problems={self.first}-{self.last};"
-            f"cylinder_slabs={self.cylinder_slabs};grasp_target={self.grasp_target};"
+            f"cylinder_slabs={self.cylinder_slabs};grasp_target={self.grasp_target};sdf_mode={self.sdf_mode};"
         )
 
 
