@@ -178,6 +178,12 @@ def test_a_prior_plans_held_out_problems_and_joins_rrtconnect_in_one_database(da
     assert loaded["problem_names"] == ["mbm_panda_bookshelf_small", "mbm_panda_cage"]
     assert "fraction valid" in loaded["attributes"]
     assert loaded["runs"].height == 4 and len(set(loaded["runs"]["planner"].cast(str).to_list())) == 2
+    # the held-out problems only: RRTConnect's runs of problem 1 are left out
+    held_out = mbm_run.write_database(out, tmp_path / "held-out.db", more=(rrt,), problems=(51, 100))
+    conn = sqlite3.connect(held_out)
+    kept = conn.execute("SELECT r.problem, p.name FROM runs r JOIN plannerConfigs p ON r.plannerid = p.id").fetchall()
+    conn.close()
+    assert sorted(kept) == [(51, "mpd_mpd"), (51, "mpd_mpd")]
 
 
 def test_float32_within_keeps_a_configuration_on_a_limit_on_it():

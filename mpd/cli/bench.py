@@ -202,10 +202,20 @@ def prior(
 @mbm.command("db")
 @click.argument("db_path", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("folders", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
-def db(db_path, folders) -> None:
+@click.option("--problems", default=None, help="FIRST-LAST: the runs of these problem indices only, e.g. 51-100")
+def db(db_path, folders, problems) -> None:
     """One OMPL benchmark database of several run folders (each a planner configuration, e.g. RRTConnect and MPD),
     for Planner Arena."""
     from mpd.experiments import mbm as mbm_run
 
-    out = mbm_run.write_database(folders[0], db_path, more=tuple(folders[1:]))
+    span = None
+    if problems:
+        try:
+            span = tuple(int(x) for x in problems.split("-"))
+            if len(span) != 2 or not 1 <= span[0] <= span[1] <= 100:
+                raise ValueError
+        except ValueError:
+            msg = f"{problems!r}: expected FIRST-LAST within 1-100"
+            raise click.BadParameter(msg, param_hint="--problems") from None
+    out = mbm_run.write_database(folders[0], db_path, more=tuple(folders[1:]), problems=span)
     click.echo(f"database: {out}")

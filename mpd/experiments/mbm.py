@@ -344,7 +344,12 @@ def _run_attributes(r: dict) -> dict:
     }
 
 
-def write_database(out_dir: str | Path, db_path: str | Path | None = None, more: tuple[str | Path, ...] = ()) -> Path:
+def write_database(
+    out_dir: str | Path,
+    db_path: str | Path | None = None,
+    more: tuple[str | Path, ...] = (),
+    problems: tuple[int, int] | None = None,
+) -> Path:
     """Run folders' results as an OMPL benchmark database (one experiment per family, one run per problem and
     folder; each folder a planner configuration: ``out_dir`` and the folders of ``more``, e.g. RRTConnect beside
     MPD). ``time`` is the time to the first solution (RRTConnect's solve; a prior's whole plan; the rejection of an
@@ -352,11 +357,15 @@ def write_database(out_dir: str | Path, db_path: str | Path | None = None, more:
     trajectory), ``fraction_valid`` a prior's valid share of its batch. The ``experiments`` table names the CPUs the
     runs planned on (``provenance.json``), OMPL's version, the base seed and the time limit (0: none); the same,
     with the per-problem seeds' rule and the counts, goes to the JSON sidecar ``benchmark.json`` beside the
-    database."""
+    database. ``problems``: (first, last) keeps the runs of those problem indices only (e.g. the held-out half that
+    both an RRTConnect folder of all 100 and a prior's folder hold)."""
     import mpd
 
     out = Path(out_dir)
     folders = [_folder(Path(d)) for d in (out, *more)]
+    if problems is not None:
+        for f in folders:
+            f["records"] = [r for r in f["records"] if problems[0] <= r["index"] <= problems[1]]
     machines = [m for f in folders for m in f["machines"]]
     here = machine() if not machines else None
     cpus = sorted({m["cpu"] for m in machines}) if machines else [here["cpu"]]
