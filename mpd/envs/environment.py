@@ -43,7 +43,7 @@ class Environment:
             else None
         )
         self._grids: dict[str, GridSDF] = {}
-        self._authors_grids: dict[str, AuthorsGridSDF] = {}
+        self._authors_grids: dict[tuple[str, bool], AuthorsGridSDF] = {}  # (set, with gradients)
         # obstacles given at plan time (world frame, not rotated with the scene): part of the "extra" set
         self.obstacles: tuple[Primitive, ...] = ()
         self._base: Environment | None = None
@@ -82,7 +82,7 @@ class Environment:
         env.obstacles = self.obstacles + prims
         env._base = self._base or self  # the fixed objects' grid is read from (and built in) the base scene
         env._grids = {k: v for k, v in self._grids.items() if k == "fixed"}
-        env._authors_grids = {k: v for k, v in self._authors_grids.items() if k.split("+")[0] == "fixed"}
+        env._authors_grids = {k: v for k, v in self._authors_grids.items() if k[0] == "fixed"}
         return env
 
     @property
@@ -117,7 +117,7 @@ class Environment:
                 r = objs.sdf(x, grad=grad)
                 d, g = r if grad else (r, None)
             elif mode == "authors":  # the authors' lookup (a measurement: their validity verdicts, their cost)
-                key = f"{name}+grad" if grad else name
+                key = (name, bool(grad))
                 if key not in self._authors_grids:
                     self._authors_grids[key] = AuthorsGridSDF(objs, *self.workspace, self.spec.sdf_cell_size, grad)
                 grid = self._authors_grids[key]

@@ -136,12 +136,11 @@ def run_unit(unit: Unit) -> UnitResult:
     row["overrides"] = ",".join(f"{k}={v}" for k, v in sorted(unit.overrides.items()))
     row.update(metrics)
     row["best_index"] = -1 if best is None else best
-    if authors_checker is not None:  # every task now; kept for callers that pass none
-        theirs = authors_checker.trajectories(d64.q, d64.dq_dt, d64.ddq_dt2).valid
-        ours = validity.valid.cpu()
-        row["fraction_valid_authors_grid"] = float(theirs.double().mean())
-        row["n_flips_valid_to_invalid"] = int((ours & ~theirs).sum())
-        row["n_flips_invalid_to_valid"] = int((~ours & theirs).sum())
+    theirs = authors_checker.trajectories(d64.q, d64.dq_dt, d64.ddq_dt2).valid
+    ours = validity.valid.cpu()
+    row["fraction_valid_authors_grid"] = float(theirs.double().mean())
+    row["n_flips_valid_to_invalid"] = int((ours & ~theirs).sum())
+    row["n_flips_invalid_to_valid"] = int((~ours & theirs).sum())
     row["time_warmup"] = float(warm_s)
     for k, v in result.timings.items():
         if k == "cost_gradient_calls":
