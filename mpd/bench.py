@@ -5,13 +5,11 @@ diffusion and CVAE planners) on MotionBenchMaker's held-out problems, each probl
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import asdict
 from pathlib import Path
 
 from mpd.data.mbm import FAMILIES, Imported, grasp_points, grasped_object
-from mpd.experiments.mbm import PRIOR_TASK, RESULTS, PriorSettings, read_results, record_machine, settings_file
+from mpd.experiments.mbm import PRIOR_TASK, PriorSettings, append_results, read_results, settings_file
 
 
 def load_prior_planner(settings: PriorSettings):
@@ -100,29 +98,19 @@ def run_prior(
         todo += [(fam, p) for p in kept[:limit]]
     done = {(r["family"], r["index"]) for r in read_results(out)}
     todo = [(f, p) for f, p in todo if (f, p.index) not in done]
-    planner = None
-    if todo:
-        planner = load_prior_planner(settings)
-    identity = None if planner is None or planner.model is None else planner.model.meta.get("identity")
     meta = {
         "baseline": "prior",
         "settings": asdict(settings),
         "mbm_identity": imported.identity,
         "task": PRIOR_TASK.name,
     }
-    if identity is not None:
-        meta["model_identity"] = identity
-    settings_file(out, meta, PriorSettings)
-    if not todo:
-        return read_results(out)
-    record = record_machine(out)
-    with open(out / RESULTS, "a") as fh:
-        for fam, p in todo:
-            rec = run_prior_problem(planner, fam, p, settings)
-            fh.write(json.dumps(rec) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-            record(rec)
-            if progress is not None:
-                progress(rec)
-    return read_results(out)
+    written = (out / "settings.json").is_file()
+    if written:
+        settings_file(out, meta, PriorSettings)  # other settings fail here, before the planner's ~30 s set-up
+    planner = load_prior_planner(settings) if todo else None
+    if not written:
+        identity = None if planner is None or planner.model is None else planner.model.meta.get("identity")
+        if identity is not None:
+            meta["model_identity"] = identity
+        settings_file(out, meta, PriorSettings)
+    return append_results(out, todo, lambda fam, p: run_prior_problem(planner, fam, p, settings), progress)

@@ -34,6 +34,18 @@ def _import(source: Path | None, download: bool, families: tuple[str, ...] | Non
     return mbm.import_problems(source, families)
 
 
+def _summary(out_dir: Path, recs: list[dict], families) -> None:
+    """Solved problems per family, then the folder's OMPL benchmark database."""
+    from mpd.experiments import mbm as mbm_run
+
+    db = mbm_run.write_database(out_dir)
+    for fam in families:
+        rows = [r for r in recs if r["family"] == fam]
+        if rows:
+            click.echo(f"{fam:<18} solved {sum(r['success'] for r in rows)}/{len(rows)}")
+    click.echo(f"database: {db}")
+
+
 @click.group()
 def bench() -> None:
     """Public benchmarks: the MotionBenchMaker Panda problems (mbm)."""
@@ -121,13 +133,7 @@ def run(out_dir, source, families, cylinder_slabs, grasp_target, limit, time_lim
         recs = mbm_run.run_baseline(imp, out_dir, settings, fams, limit, progress=show)
     except ValueError as e:
         raise click.UsageError(str(e)) from None
-    db = mbm_run.write_database(out_dir)
-    for fam in fams or imp.families:
-        rows = [r for r in recs if r["family"] == fam]
-        if rows:
-            ok = sum(r["success"] for r in rows)
-            click.echo(f"{fam:<18} solved {ok}/{len(rows)}")
-    click.echo(f"database: {db}")
+    _summary(out_dir, recs, fams or imp.families)
 
 
 @mbm.command("prior")
@@ -191,12 +197,7 @@ def prior(
         recs = bench_run.run_prior(imp, out_dir, settings, fams, limit, progress=show)
     except ValueError as e:
         raise click.UsageError(str(e)) from None
-    db = mbm_run.write_database(out_dir)
-    for fam in fams or imp.families:
-        rows = [r for r in recs if r["family"] == fam]
-        if rows:
-            click.echo(f"{fam:<18} solved {sum(r['success'] for r in rows)}/{len(rows)}")
-    click.echo(f"database: {db}")
+    _summary(out_dir, recs, fams or imp.families)
 
 
 @mbm.command("db")

@@ -202,12 +202,19 @@ def run_baseline(
     done = {(r["family"], r["index"]) for r in read_results(out)}
     fams = tuple(FAMILIES if families is None else families)
     todo = [(fam, p) for fam in fams for p in imported.problems(fam)[:limit] if (fam, p.index) not in done]
+    return append_results(out, todo, lambda fam, p: run_problem(imported, fam, p, settings), progress)
+
+
+def append_results(out: Path, todo: list, plan_one, progress=None) -> list[dict]:
+    """Plan each (family, problem) of ``todo`` with ``plan_one``, appending its record to ``out/results.jsonl``
+    (flushed and synced, so a killed run keeps what it planned) and this invocation's machine to
+    ``provenance.json``; then every record of the folder."""
     if not todo:
         return read_results(out)
     record = record_machine(out)
     with open(out / RESULTS, "a") as fh:
         for fam, p in todo:
-            rec = run_problem(imported, fam, p, settings)
+            rec = plan_one(fam, p)
             fh.write(json.dumps(rec) + "\n")
             fh.flush()
             os.fsync(fh.fileno())
