@@ -597,6 +597,35 @@ def test_wsd_budget_resumed_from_a_trunk_equals_the_same_budget_trained_alone(tm
     assert [h["train_loss"] for h in alone["history"]] == [h["train_loss"] for h in via_trunk["history"]]
 
 
+def test_constant_budget_started_from_a_longer_runs_checkpoint_equals_it_trained_alone(tmp_path):
+    """mpd train --from: a 30-step constant-schedule model started from step 20 of a 60-step run's last.pt (in
+    another cache) ends bit-identical to the 30-step model trained from step 0, and records where it started."""
+    arrays = toy_arrays(n_val=4)
+    long, short = tiny_training(steps=60), tiny_training(steps=30)
+    last = train_model(arrays, "diffusion", TINY, long, seed=3, progress=False, cache=tmp_path / "a", stop_after=20)
+    ckpt = shutil.copy(last, tmp_path / "long-20.pt")
+    started = read_checkpoint(
+        train_model(arrays, "diffusion", TINY, short, seed=3, progress=False, cache=tmp_path / "b", start_from=ckpt)
+    )
+    alone = read_checkpoint(train_model(arrays, "diffusion", TINY, short, seed=3, progress=False, cache=tmp_path / "c"))
+    assert started["identity"] == alone["identity"] != read_checkpoint(ckpt)["identity"]
+    assert started["started_from"] == {"identity": read_checkpoint(ckpt)["identity"], "step": 20, "file": "long-20.pt"}
+    assert "started_from" not in alone
+    for key in ("weights", "ema_weights"):
+        assert all(torch.equal(alone[key][k], started[key][k]) for k in alone[key])
+    # what does not qualify is named: the budget passed, another learning rate, the cosine schedule
+    record = {k: started[k] for k in train_module.SAME_TRAINING_FIELDS} | {"training_spec": started["training_spec"]}
+    with pytest.raises(ConfigError, match="step: is 20, past this training's 10 steps"):
+        train_module.start_state(ckpt, record, tiny_training(steps=10), torch.device("cpu"))
+    other = record | {"training_spec": {**record["training_spec"], "lr": 2e-3}}
+    with pytest.raises(ConfigError, match=r"training_spec: differs in more than the budget: lr = 0.001 \(this"):
+        train_module.start_state(ckpt, other, tiny_training(steps=30, lr=2e-3), torch.device("cpu"))
+    with pytest.raises(ConfigError, match="seed: is 3, this training's is 4"):
+        train_module.start_state(ckpt, record | {"seed": 4}, short, torch.device("cpu"))
+    with pytest.raises(ConfigError, match="cosine"):
+        train_module.start_state(ckpt, record, tiny_training(steps=30, lr_schedule="cosine"), torch.device("cpu"))
+
+
 def test_wsd_learning_rate_is_flat_then_decays_to_the_floor():
     from mpd.models.train import learning_rate
 

@@ -32,7 +32,17 @@ from mpd.cli import check_device
     is_flag=True,
     help="train even when a shipped prior of this identity exists (reproduces it; the cache copy is then retrained)",
 )
-def train(task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow, no_shipped):
+@click.option(
+    "--from",
+    "start_from",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="start from this checkpoint of a longer or shorter budget of the same training (a last.pt or a copy of one; "
+    "constant or wsd schedule, a step both budgets pass through) instead of step 0",
+)
+def train(
+    task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow, no_shipped, start_from
+):
     """Train (or find, when this exact model exists in the cache or among the shipped priors) a prior; prints the
     checkpoint path."""
     import dataclasses
@@ -59,7 +69,9 @@ def train(task_name, kind, parametrization, profile, dataset, steps, seed, devic
     ds = load_dataset(name)
     arrays = training_arrays(task, ds, parametrization)
     del ds  # the training arrays hold what training needs; a paper-size dataset's control points are ~2 GB
-    path = train_model(arrays, kind, task.model(profile), spec, seed=seed, device=device, shipped=not no_shipped)
+    path = train_model(
+        arrays, kind, task.model(profile), spec, seed=seed, device=device, shipped=not no_shipped, start_from=start_from
+    )
     click.echo(f"model: {path}")
     if mlflow:
         from mpd.experiments.tracking import log_model_to_mlflow

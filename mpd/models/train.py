@@ -490,23 +490,77 @@ class TrainingState:
         }
 
 
+# the fields of a checkpoint that must equal this training's for its state to be one of this training's states
+# (mpd train --from); the training spec is compared apart (every field but the budget's)
+SAME_TRAINING_FIELDS = ("kind", "dataset_hash", "parametrization", "parametrization_settings", "model_spec", "seed")
+# training-spec fields that do not act on the state: the budget (steps; decay_fraction acts only after the stable
+# phase) and how often the loop validates and saves
+BUDGET_FIELDS = ("steps", "decay_fraction", "val_every", "checkpoint_every")
+
+
+def _stable_end_of(training_spec: dict[str, Any]) -> int:
+    """The last step of a recorded training spec's stable phase (its whole run for the constant schedule)."""
+    ts = dict(training_spec)
+    if ts.get("lr_schedule") != "wsd":
+        return int(ts["steps"])
+    return int(ts["steps"]) - round(float(ts["decay_fraction"]) * int(ts["steps"]))
+
+
+def start_state(path: str | Path, record: dict[str, Any], ts: TrainingSpec, device: torch.device) -> dict[str, Any]:
+    """The training state of a checkpoint of another budget of this very training (``mpd train --from``): a
+    ``last.pt`` (or a copy of one) of the same task data, network, seed and training spec but for the number of
+    steps, at a step this training also passes through with the same learning rates. Under the ``constant``
+    schedule every step qualifies (a budget of N steps is the first N steps of a longer one, bit for bit); under
+    ``wsd`` the steps of both runs' stable phases (as the trunk snapshots, which are made automatically); the
+    ``cosine`` schedule's learning rate depends on the budget at every step, so it has no such states. Anything else
+    raises :class:`ConfigError` naming the file and the field."""
+    state = read_checkpoint(path, map_location=device)
+    if ts.lr_schedule == "cosine":
+        raise ConfigError(
+            path, "training_spec.lr_schedule", "cosine: its learning rate depends on the budget at every step, so no "
+            "other budget passes through this training's states (constant and wsd can start from one)",
+        )  # fmt: skip
+    for name in SAME_TRAINING_FIELDS:
+        if state.get(name) != record[name]:
+            raise ConfigError(path, name, f"is {state.get(name)!r}, this training's is {record[name]!r}")
+    theirs, ours = dict(state.get("training_spec") or {}), dict(record["training_spec"])
+    differ = sorted(k for k in theirs.keys() | ours.keys() if k not in BUDGET_FIELDS and theirs.get(k) != ours.get(k))
+    if differ:
+        detail = ", ".join(f"{k} = {theirs.get(k)!r} (this training: {ours.get(k)!r})" for k in differ)
+        raise ConfigError(path, "training_spec", f"differs in more than the budget: {detail}")
+    step, ours_end, theirs_end = int(state["step"]), stable_steps(ts), _stable_end_of(theirs)
+    if step > ours_end:
+        raise ConfigError(
+            path, "step", f"is {step}, past this training's {ts.steps} steps (stable phase to {ours_end})"
+        )
+    if step > theirs_end:
+        raise ConfigError(path, "step", f"is {step}, in its own run's decay (its stable phase ends at {theirs_end})")
+    return state
+
+
 def _resume_state(
-    claim: _Claim, trunk: _Trunk | None, device: torch.device
-) -> tuple[dict[str, Any] | None, int | None]:
-    """The checkpoint a training continues from: its own ``last.pt``, else (``wsd``) the latest snapshot of its
-    trunk, else none (a fresh start); and the trunk step the training first resumed from, if it did."""
+    claim: _Claim, trunk: _Trunk | None, device: torch.device, start: tuple[Path, dict[str, Any]] | None = None
+) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """The checkpoint a training continues from: its own ``last.pt``, else the checkpoint of another budget it was
+    told to start from (``start``: the path and its state, :func:`start_state`), else (``wsd``) the latest snapshot
+    of its trunk, else none (a fresh start); and the record's fields saying where it first started from, if not at
+    step 0 (``resumed_from_trunk_step``, ``started_from``)."""
     if claim.last_path.is_file():
         state = read_checkpoint(claim.last_path, map_location=device)
         if state["identity"] != claim.identity:
             raise ConfigError(
                 claim.last_path, "identity", f"is {state['identity']!r}, expected {claim.identity!r} (foreign file)"
             )
-        return state, state.get("resumed_from_trunk_step")
+        return state, {k: state[k] for k in ("resumed_from_trunk_step", "started_from") if state.get(k) is not None}
+    if start is not None:
+        path, state = start
+        origin = {"identity": state["identity"], "step": int(state["step"]), "file": Path(path).name}
+        return state, {"started_from": origin}
     if trunk is not None:
         state = _latest_trunk_state(trunk.dir, trunk.key, trunk.stable_end, device)
         if state is not None:
-            return state, int(state["step"])
-    return None, None
+            return state, {"resumed_from_trunk_step": int(state["step"])}
+    return None, {}
 
 
 class Checkpointer:
@@ -681,6 +735,7 @@ def train_model(
     shipped: bool = True,
     cuda_graph: bool | None = None,
     compile_step: bool | None = None,
+    start_from: str | Path | None = None,
 ) -> Path:
     """Train (or find) the model of this identity; return the path of its ``model.pt``.
 
@@ -696,7 +751,9 @@ def train_model(
     (``MPD_TRAIN_COMPILE=0`` never, ``=1`` whatever the length), except the retraining of a shipped prior that was
     trained eagerly (``shipped=False``), which stays eager so that it reproduces the shipped weights bit for bit.
     The modes a checkpoint's steps ran in are recorded as ``execution`` (``[[first step, mode], ...]``) wherever a
-    mode other than eager was used.
+    mode other than eager was used. ``start_from``: a checkpoint of another budget of this training to start from
+    instead of step 0 (:func:`start_state` says which qualify; the model records it as ``started_from``); its own
+    ``last.pt``, when there is one, still comes first.
     """
     ts = _checked_spec(arrays, kind, model_spec, training_spec)
     claim = _find_or_claim(arrays, kind, model_spec, ts, seed, cache, shipped)
@@ -712,9 +769,9 @@ def train_model(
     trunk = _Trunk.of(arrays, kind, model_spec, ts, seed, cache)
     record["trunk"] = trunk.key if trunk is not None else None
     state = TrainingState.fresh(kind, arrays, model_spec, ts, seed, device)
-    resumed, from_trunk_step = _resume_state(claim, trunk, device)
-    if from_trunk_step is not None:
-        record["resumed_from_trunk_step"] = from_trunk_step
+    start = (start_from, start_state(start_from, record, ts, device)) if start_from is not None else None
+    resumed, origin = _resume_state(claim, trunk, device, start)
+    record.update(origin)
     if resumed is not None:
         state.load(resumed, device)
 
@@ -822,5 +879,5 @@ def make_optimizer(net: nn.Module, ts: TrainingSpec) -> torch.optim.Optimizer:
 
 __all__ = [
     "EagerStep", "check_training_spec", "list_models", "make_optimizer", "model_dir", "model_identity",
-    "network_identity", "stable_steps", "train_model", "training_loss_kwargs", "trunk_identity",
+    "network_identity", "stable_steps", "start_state", "train_model", "training_loss_kwargs", "trunk_identity",
 ]  # fmt: skip
