@@ -59,7 +59,14 @@ def contexts(task, n: int, source: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run(
-    task_name: str, n_contexts: int, n_samples: int, variants: list[str], source: str, model: str | None = None
+    task_name: str,
+    n_contexts: int,
+    n_samples: int,
+    variants: list[str],
+    source: str,
+    model: str | None = None,
+    method: str = "dprior",
+    extra_objects: bool = False,
 ) -> pd.DataFrame:
     import mpd
     from mpd.envs.primitives import ObjectSet
@@ -67,17 +74,27 @@ def run(
 
     task = load_task(task_name)
     q_start, q_goal = contexts(task, n_contexts, source)
+    index = np.arange(len(q_start))
+    if extra_objects:  # the contexts valid with the extra objects, as an experiment's scene keeps them
+        from mpd.data.eval_contexts import _ends_valid
+
+        index = np.flatnonzero(_ends_valid(task, q_start, q_goal, True, 0.0))
     radius = float(task.robot.sphere_radii[0]) if hasattr(task.robot, "sphere_radii") else 0.02
     frames = []
     for name in variants:
-        planner = mpd.load_planner(task_name, "dprior", model=model, fast=False, **VARIANTS[name])
+        planner = mpd.load_planner(
+            task_name, method, model=model, fast=False, extra_objects=extra_objects, **VARIANTS[name]
+        )
         env = planner.scene()
-        one_by_one = [ObjectSet(env.dim, [p], env.fixed.corner_radius) for p in env.fixed.primitives]
-        # a box as long as the workspace's half is a wall of the passage
-        kinds = ["wall" if p.kind == "box" and max(p.half_size) > 0.4 else p.kind for p in env.fixed.primitives]
+        one_by_one = [ObjectSet(env.dim, [p], env.fixed.corner_radius) for p, _ in env.primitives]
+        # a box as long as the workspace's half is a wall of the passage; the extra objects as such
+        kinds = [
+            "extra" if extra else "wall" if p.kind == "box" and max(p.half_size) > 0.4 else p.kind
+            for p, extra in env.primitives
+        ]
         t0 = time.perf_counter()
-        for i in range(len(q_start)):
-            plan = planner.plan(q_start[i], q_goal[i], n_samples=n_samples, seed=i)
+        for i in index:
+            plan = planner.plan(q_start[i], q_goal[i], n_samples=n_samples, seed=int(i))
             q = torch.as_tensor(plan.q)  # (S, T, 2)
             d = env.sdf(q, mode="analytic") - radius
             worst = d.argmin(1)
@@ -89,6 +106,8 @@ def run(
                         "task": task_name,
                         "contexts": source,
                         "variant": name,
+                        "method": method,
+                        "scene": "extra-objects" if extra_objects else "training",
                         "model": f"{plan.provenance['model_identity']} ({plan.provenance['model_source']})",
                         "context": i,
                         "distance": float(np.linalg.norm(np.asarray(q_goal[i]) - np.asarray(q_start[i]))),
@@ -106,7 +125,10 @@ def run(
 
 def summary(df: pd.DataFrame) -> pd.DataFrame:
     rows = []
-    for (task, model, source, name), g in df.groupby(["task", "model", "contexts", "variant"], sort=False):
+    df = _with_method(df)
+    for (task, model, source, name, method, scene), g in df.groupby(
+        ["task", "model", "contexts", "variant", "method", "scene"], sort=False
+    ):
         bad = g[~g.collision_free]
         q = bad.clearance.quantile([0.1, 0.5, 0.9]) * 100 if len(bad) else pd.Series([np.nan] * 3)
         rows.append(
@@ -115,6 +137,8 @@ def summary(df: pd.DataFrame) -> pd.DataFrame:
                 "model": model,
                 "contexts": source,
                 "variant": name,
+                "method": method,
+                "scene": scene,
                 "fraction valid %": 100 * g.valid.mean(),
                 "collision-free %": 100 * g.collision_free.mean(),
                 "within limits %": 100 * g.limits_ok.mean(),
@@ -123,18 +147,23 @@ def summary(df: pd.DataFrame) -> pd.DataFrame:
                 "colliding: shallower than 1 cm %": 100 * (bad.clearance > -0.01).mean() if len(bad) else np.nan,
                 **{
                     f"colliding: deepest in a {k} %": 100 * (bad.obstacle == k).mean() if len(bad) else np.nan
-                    for k in ("wall", "sphere", "box")
+                    for k in ("wall", "sphere", "box", "extra")
                 },
             }
         )
     return pd.DataFrame(rows)
 
 
+def _with_method(df: pd.DataFrame) -> pd.DataFrame:
+    """Files written before the method and scene columns: Dprior in the training scene."""
+    return df.assign(**{k: v for k, v in (("method", "dprior"), ("scene", "training")) if k not in df})
+
+
 def by_distance(df: pd.DataFrame, bins=(0.0, 0.5, 1.0, 1.4, 2.0, 3.0)) -> pd.DataFrame:
     """Fraction valid (%) by the contexts' start-goal distance, per context source and sampler variant."""
-    d = df.assign(distance=pd.cut(df.distance, list(bins)))
+    d = _with_method(df).assign(distance=pd.cut(df.distance, list(bins)))
     d["task"] = d.task.str.split("-").str[0]
-    keys = ["task", "model", "contexts", "variant"]
+    keys = ["task", "model", "contexts", "variant", "method", "scene"]
     t = d.groupby([*keys, "distance"], observed=True).valid.mean().mul(100).round(1)
     order = d[keys].drop_duplicates().apply(tuple, axis=1).tolist()
     t = t.unstack("distance")
@@ -150,6 +179,8 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--contexts-from", default="sampled", choices=["sampled", "train", "held-out", "task"])
     ap.add_argument("--model", default=None, help="a model identity or checkpoint (default: the shipped prior)")
+    ap.add_argument("--method", default="dprior", help="the planner (dprior, dprior-cost, mpd, ...)")
+    ap.add_argument("--extra-objects", action="store_true", help="the task's scene with its extra objects")
     ap.add_argument("--out", type=Path, default=Path("/tmp/misses.parquet"))
     if sys.argv[1:2] == ["summary"]:
         df = pd.concat([pd.read_parquet(f) for f in sys.argv[2:]], ignore_index=True)
@@ -159,7 +190,16 @@ def main() -> None:
         print(by_distance(df).to_string())
         return
     args = ap.parse_args()
-    df = run(args.task, args.contexts, args.samples, args.variants, args.contexts_from, args.model)
+    df = run(
+        args.task,
+        args.contexts,
+        args.samples,
+        args.variants,
+        args.contexts_from,
+        args.model,
+        args.method,
+        args.extra_objects,
+    )
     df.to_parquet(args.out)
     pd.set_option("display.width", 250)
     pd.set_option("display.max_columns", 20)

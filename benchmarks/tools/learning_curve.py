@@ -1,0 +1,104 @@
+"""A prior's learning curve as tables: snapshots of one training (copies of its ``last.pt``) evaluated by
+``prior_misses.py`` (Dprior, Dprior+Cost and MPD, the training scene and the extra objects, the task's evaluation
+contexts), one row per snapshot, with 95 % intervals over the contexts and the paper's adaptation comparison
+(MPD - Dprior+Cost with the extra objects, paired over the contexts).
+
+Files are named ``<label>-<steps>-<method>[-extra].parquet`` (e.g. ``authors-40000-mpd-extra.parquet``), as
+``prior_misses.py --out`` writes them:
+
+    PYTHONPATH=. python benchmarks/tools/learning_curve.py /tmp/evals/*-[0-9]*-*.parquet --csv contexts.csv
+    PYTHONPATH=. python benchmarks/tools/learning_curve.py contexts.csv   # the tables again from the per-context file
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+from mpd.stats import bootstrap, paired, rate
+
+NAME = re.compile(r"(?P<label>.+?)-(?P<steps>\d+)-(?P<method>dprior-cost|dprior|mpd)(?P<extra>-extra)?\.parquet$")
+METHODS = {"dprior": "Dprior", "dprior-cost": "Dprior+Cost", "mpd": "MPD"}
+
+
+def load(files: list[Path]) -> pd.DataFrame:
+    """Per context: the fraction valid and whether any sample is valid, with the file's label, steps, method, scene."""
+    rows = []
+    for f in files:
+        m = NAME.match(f.name)
+        if m is None:
+            raise ValueError(f"{f}: expected <label>-<steps>-<method>[-extra].parquet")
+        steps = int(m["steps"])
+        g = pd.read_parquet(f).groupby("context").valid
+        rows.append(
+            pd.DataFrame(
+                {
+                    "label": m["label"],
+                    "steps": steps,
+                    "method": m["method"],
+                    "scene": "extra objects" if m["extra"] else "training",
+                    "context": g.mean().index,
+                    "valid": g.mean().to_numpy(),
+                    "success": g.any().to_numpy().astype(float),
+                }
+            )
+        )
+    return pd.concat(rows, ignore_index=True)
+
+
+def _cell(g: pd.DataFrame) -> str:
+    v, s = bootstrap(g.valid), rate(g.success)
+    return f"{100 * v.value:.1f} [{100 * v.lo:.1f}, {100 * v.hi:.1f}] / {100 * s.value:.0f} %"
+
+
+def table(df: pd.DataFrame) -> str:
+    """Markdown: a row per (label, steps), a column per (scene, method): fraction valid % [95 % CI] / success %,
+    and MPD - Dprior+Cost with the extra objects (pp, paired bootstrap 95 %)."""
+    cols = [
+        (sc, me)
+        for sc in ("training", "extra objects")
+        for me in METHODS
+        if ((df.scene == sc) & (df.method == me)).any()
+    ]
+    head = ["prior", "steps", *(f"{METHODS[me]}, {sc}" for sc, me in cols), "MPD − Dprior+Cost, extra objects (pp)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for (label, steps), g in df.groupby(["label", "steps"], sort=True):
+        cells = []
+        for sc, me in cols:
+            c = g[(g.scene == sc) & (g.method == me)]
+            cells.append(_cell(c) if len(c) else "")
+        a = g[(g.scene == "extra objects") & (g.method == "mpd")].set_index("context").valid
+        b = g[(g.scene == "extra objects") & (g.method == "dprior-cost")].set_index("context").valid
+        diff = ""
+        if len(a) and len(b):
+            common = a.index.intersection(b.index)
+            d = paired(a[common].to_numpy(), b[common].to_numpy()).difference
+            diff = f"{100 * d.value:+.1f} [{100 * d.lo:+.1f}, {100 * d.hi:+.1f}]"
+        lines.append("| " + " | ".join([label, str(steps), *cells, diff]) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    args = sys.argv[1:]
+    csv = None
+    if "--csv" in args:
+        i = args.index("--csv")
+        csv = Path(args[i + 1])
+        del args[i : i + 2]
+    if not args:
+        sys.exit(__doc__)
+    files = [Path(a) for a in args]
+    df = pd.concat([pd.read_csv(f) for f in files]) if all(f.suffix == ".csv" for f in files) else load(files)
+    if csv is not None:
+        df.to_csv(csv, index=False, float_format="%.4g")
+    n = df.groupby("scene").context.nunique()
+    print(table(df))
+    print("\ncontexts per scene: " + ", ".join(f"{k} {v}" for k, v in n.items()))
+    print("fraction valid: the mean over contexts of each context's share of valid samples; success: a valid one")
+
+
+if __name__ == "__main__":
+    main()
