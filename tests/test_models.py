@@ -613,6 +613,20 @@ def test_constant_budget_started_from_a_longer_runs_checkpoint_equals_it_trained
     assert "started_from" not in alone
     for key in ("weights", "ema_weights"):
         assert all(torch.equal(alone[key][k], started[key][k]) for k in alone[key])
+    # a budget that ends at the checkpoint's step is that state, finished (no step to take)
+    path = train_model(
+        arrays,
+        "diffusion",
+        TINY,
+        tiny_training(steps=20),
+        seed=3,
+        progress=False,
+        cache=tmp_path / "d",
+        start_from=ckpt,
+    )
+    at, source = read_checkpoint(path), read_checkpoint(ckpt)
+    assert at["started_from"]["step"] == 20 and at["history"][-1]["step"] == 20
+    assert all(torch.equal(at["ema_weights"][k], source["ema_weights"][k]) for k in source["ema_weights"])
     # what does not qualify is named: the budget passed, another learning rate, the cosine schedule
     record = {k: started[k] for k in train_module.SAME_TRAINING_FIELDS} | {"training_spec": started["training_spec"]}
     with pytest.raises(ConfigError, match="step: is 20, past this training's 10 steps"):
