@@ -8,6 +8,9 @@ Files are named ``<label>-<steps>-<method>[-extra].parquet`` (e.g. ``authors-400
 
     PYTHONPATH=. python benchmarks/tools/learning_curve.py /tmp/evals/*-[0-9]*-*.parquet --csv contexts.csv
     PYTHONPATH=. python benchmarks/tools/learning_curve.py contexts.csv   # the tables again from the per-context file
+    PYTHONPATH=. python benchmarks/tools/learning_curve.py contexts.csv --versus authors:60000 cpu:24000  # paired
+
+A file with a ``task`` column (several tasks' files combined) gives a table per task.
 """
 
 from __future__ import annotations
@@ -81,6 +84,27 @@ def table(df: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def versus(df: pd.DataFrame, a: str, b: str) -> str:
+    """Markdown: prior ``a`` − prior ``b`` ("label:steps" each) per (scene, method), fraction valid paired over the
+    contexts both ran (pp, 95 % bootstrap)."""
+
+    def rows(ref: str) -> pd.DataFrame:
+        label, steps = ref.rsplit(":", 1)
+        return df[(df.label == label) & (df.steps == int(steps))]
+
+    ra, rb = rows(a), rows(b)
+    lines = [f"| scene | method | {a} − {b}, fraction valid (pp) | contexts |", "| --- | --- | --- | ---: |"]
+    for sc, me in [(sc, me) for sc in ("training", "extra objects") for me in METHODS]:
+        g = ra[(ra.scene == sc) & (ra.method == me)].set_index("context").valid
+        h = rb[(rb.scene == sc) & (rb.method == me)].set_index("context").valid
+        common = g.index.intersection(h.index)
+        if len(common):
+            d = paired(g[common].to_numpy(), h[common].to_numpy()).difference
+            cell = f"{100 * d.value:+.1f} [{100 * d.lo:+.1f}, {100 * d.hi:+.1f}]"
+            lines.append(f"| {sc} | {METHODS[me]} | {cell} | {len(common)} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     args = sys.argv[1:]
     csv = None
@@ -88,15 +112,24 @@ def main() -> None:
         i = args.index("--csv")
         csv = Path(args[i + 1])
         del args[i : i + 2]
+    pair = None
+    if "--versus" in args:
+        i = args.index("--versus")
+        pair = args[i + 1 : i + 3]
+        del args[i : i + 3]
     if not args:
         sys.exit(__doc__)
     files = [Path(a) for a in args]
     df = pd.concat([pd.read_csv(f) for f in files]) if all(f.suffix == ".csv" for f in files) else load(files)
     if csv is not None:
         df.to_csv(csv, index=False, float_format="%.4g")
-    n = df.groupby("scene").context.nunique()
-    print(table(df))
-    print("\ncontexts per scene: " + ", ".join(f"{k} {v}" for k, v in n.items()))
+    tasks = df.groupby("task", sort=False) if "task" in df else [(None, df)]  # a combined file: a table per task
+    for task, d in tasks:
+        n = d.groupby("scene").context.nunique()
+        print(f"\n## {task}\n" if task else "", table(d), sep="")
+        if pair:
+            print("\n" + versus(d, *pair))
+        print("\ncontexts per scene: " + ", ".join(f"{k} {v}" for k, v in n.items()))
     print("fraction valid: the mean over contexts of each context's share of valid samples; success: a valid one")
 
 
