@@ -1,15 +1,16 @@
 """Training throughput of the diffusion priors on CPU: the step ``train_model`` runs (batch draw, loss forward and
-backward, gradient clipping, fused AdamW, EMA), eager and with the loss compiled (mpd.models.compiled_step), for the
-2-D network (EnvSimple2D-RobotPointMass2D's ``cpu`` profile) and the Panda one (EnvWarehouse-RobotPanda's ``cpu``
-profile), on random data of the real shapes, 1 thread (as the trainings run, two side by side on a 2-core machine).
+backward, gradient clipping, fused AdamW, EMA), eager and with the loss compiled (mpd.models.compiled_step, with
+inductor's C++ wrapper as trainings run it, and with its default Python wrapper for the ratio), for the 2-D network
+(EnvSimple2D-RobotPointMass2D's ``cpu`` profile) and the Panda one (EnvWarehouse-RobotPanda's ``cpu`` profile), on
+random data of the real shapes, 1 thread (as the trainings run, two side by side on a 2-core machine).
 
 Each case reports steps/s, GFLOP per step (``torch.utils.flop_counter``: the convolutions and matrix products of the
 forward and backward), the achieved GFLOP/s and its fraction of the nominal fp32 and bf16 peak of one core
 (cpu_peak.py), the arithmetic the profile trains in here (bf16 autocast only where the CPU has native bf16) and, for
-the compiled step, the seconds its first call took (compilation). Both modes of a network run in one process and
-one test, interleaved (one eager step, then one compiled step, per round, each from its own copy of the same initial
-state), so that a machine whose load changes during the run (the trainings beside it) slows both alike; the
-benchmark's own time is the pair's, the per-mode figures are the medians of each mode's steps (``extra_info``):
+the compiled steps, the seconds their first call took (compilation). All modes of a network run in one process and
+one test, interleaved (one step of each mode per round, each from its own copy of the same initial state), so that
+a machine whose load changes during the run (the trainings beside it) slows them alike; the benchmark's own time is
+the round's, the per-mode figures are the medians of each mode's steps (``extra_info``):
 
 ``pytest benchmarks/test_bench_training.py -m benchmark --benchmark-enable -s`` (``nox -s benchmarks``).
 """
@@ -37,7 +38,7 @@ pytestmark = pytest.mark.benchmark
 CASES = {"2d": "EnvSimple2D-RobotPointMass2D", "panda": "EnvWarehouse-RobotPanda"}
 N_ROWS = 4096  # rows of the random training set the batches are drawn from
 ROUNDS = {"2d": 40, "panda": 8}
-MODES = ("eager", "compiled")
+MODES = ("eager", "compiled-python-wrapper", "compiled")  # the last: the training's own compiled step
 
 
 class _Shapes:
@@ -75,8 +76,12 @@ def _stepper(mode: str, spec, ts, shapes, arithmetic: Arithmetic):
     opt = make_optimizer(net, ts)
     gen = torch.Generator().manual_seed(0)
     kw = training_loss_kwargs("diffusion", ts, torch.device("cpu"))
-    cls = EagerStep if mode == "eager" else CompiledStep
-    return cls("diffusion", net, ema, opt, gen, ts, kw, arithmetic), gen
+    args = ("diffusion", net, ema, opt, gen, ts, kw, arithmetic)
+    if mode == "eager":
+        return EagerStep(*args), gen
+    if mode == "compiled-python-wrapper":  # inductor's default wrapper (the compiled step before INDUCTOR_OPTIONS)
+        return CompiledStep(*args, inductor_options={}), gen
+    return CompiledStep(*args), gen
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -100,13 +105,13 @@ def test_training_step_eager_vs_compiled(benchmark, case):
         return loss, time.perf_counter() - t0
 
     first = {m: one(m)[1] for m in MODES}  # the compiled step compiles here
-    assert steppers["compiled"][0].compiled, "the compiled step fell back to eager"
+    assert all(steppers[m][0].compiled for m in MODES[1:]), "a compiled step fell back to eager"
     net = steppers["eager"][0].net
     with FlopCounterMode(display=False) as fc:  # one eager step's operations (the compiled graph runs the same)
         one("eager")
     flops = fc.get_total_flops()
 
-    def pair():
+    def one_round():
         counter[0] += 1
         out = {}
         for m in MODES:
@@ -115,10 +120,10 @@ def test_training_step_eager_vs_compiled(benchmark, case):
         return out
 
     for _ in range(2):  # warm-up rounds, not timed
-        pair()
+        one_round()
     for m in MODES:
         times[m].clear()
-    losses = benchmark.pedantic(pair, rounds=ROUNDS[case], warmup_rounds=0)
+    losses = benchmark.pedantic(one_round, rounds=ROUNDS[case], warmup_rounds=0)
     peak = peak_gflops(1)
     info = dict(
         case=case, task=task.name, arithmetic=arithmetic, precision=ts.precision, threads=1, batch=ts.batch_size,
@@ -136,11 +141,13 @@ def test_training_step_eager_vs_compiled(benchmark, case):
             first_call_s=first[m], rounds=len(times[m]),
         )  # fmt: skip
         print(
-            f"  {m:>8}: {1 / median:.2f} steps/s, {flops / 1e9:.2f} GFLOP/step, {achieved:.1f} GFLOP/s = "
+            f"  {m:>23}: {1 / median:.2f} steps/s, {flops / 1e9:.2f} GFLOP/step, {achieved:.1f} GFLOP/s = "
             f"{100 * achieved / peak['fp32']:.0f} % of the nominal fp32 peak of 1 core ({peak['fp32']:.0f} GFLOP/s), "
             f"{100 * achieved / peak['bf16']:.0f} % of bf16 ({peak['bf16']:.0f}); first call {first[m]:.1f} s"
         )
     info["speedup"] = statistics.median(times["eager"]) / statistics.median(times["compiled"])
-    print(f"  compiled / eager: {info['speedup']:.2f}x")
+    median = {m: statistics.median(times[m]) for m in MODES}
+    info["cpp_wrapper_speedup"] = median["compiled-python-wrapper"] / median["compiled"]
+    print(f"  compiled / eager: {info['speedup']:.2f}x; C++ / Python wrapper: {info['cpp_wrapper_speedup']:.3f}x")
     benchmark.extra_info.update(info)
     assert all(torch.isfinite(v) for v in losses.values())

@@ -28,6 +28,10 @@ from mpd.models.step import EagerStep
 
 ENV = "MPD_TRAIN_COMPILE"
 MIN_STEPS = 2000  # steps in one call from which the compiled step is the default (MPD_TRAIN_COMPILE unset)
+# Inductor's C++ wrapper: the compiled graphs call their kernels from C++ instead of a Python function, which saves
+# the Python overhead of ~100 kernel launches a step (2-D net, Zen 4, 1 thread: +3-5 % steps/s; the kernels and
+# hence the numbers are the same; benchmarks/test_bench_training.py).
+INDUCTOR_OPTIONS = {"cpp_wrapper": True}
 
 
 def cxx_available() -> bool:
@@ -51,16 +55,18 @@ def compile_by_default(kind: str, device: torch.device, n_steps: int) -> bool:
 class CompiledStep(EagerStep):
     """The eager step with the loss's forward and backward compiled: the diffusion steps and the noise are drawn
     eagerly (:meth:`DiffusionModel.loss_draws`), their loss (:meth:`DiffusionModel.loss_of_draws`) is compiled; the
-    rest of the body (clipping, AdamW, EMA) is the eager step's. Should the compilation fail (no working C++
+    rest of the body (clipping, AdamW, EMA) is the eager step's. ``inductor_options`` replaces
+    :data:`INDUCTOR_OPTIONS` (benchmarks compare them). Should the compilation fail (no working C++
     compiler), the step says so once and goes on eagerly with the same draws (``self.compiled`` False)."""
 
-    def __init__(self, *args: Any, **kwargs: Any):
+    def __init__(self, *args: Any, inductor_options: dict[str, Any] | None = None, **kwargs: Any):
         super().__init__(*args, **kwargs)
         kw = dict(self.loss_kwargs)
         self.draw_kwargs = {"t_grid": kw.pop("t_grid", None), "t_grid_fraction": kw.pop("t_grid_fraction", 0.0)}
         self.loss_kwargs = kw
         self.compiled = True
-        self._loss_fn = torch.compile(self._loss, dynamic=False)
+        options = INDUCTOR_OPTIONS if inductor_options is None else inductor_options
+        self._loss_fn = torch.compile(self._loss, dynamic=False, options=options)
 
     def _loss(self, x0: torch.Tensor, context: dict[str, torch.Tensor], t: torch.Tensor, noise: torch.Tensor):
         with self.autocast():
