@@ -212,6 +212,21 @@ def test_main_slice_keeps_the_paper_setting(prepared):
     assert {TRAIN, EXTRA} == set(d.scene)
 
 
+def test_main_slice_picks_a_cell_the_run_has_when_excludes_tie_axes():
+    """Two planner settings varied in pairs (a spec's excludes drop the other combinations): each axis picked on
+    its own would be (M = 1, lambda = 0.125), a cell the run does not have; picked in turn, the slice is one of
+    its cells (the most frequent value of the first axis, then the second's among those rows)."""
+    pairs = [(1, 1.0), (2, 0.5), (4, 0.25), (8, 0.125)]
+    rows = [
+        {"task": "T", "method": "mpd", "context_index": c, "planner.n_inner_steps": m, "planner.prior_weight": w,
+         "fraction_valid": 0.5, "success": 1.0}
+        for m, w in pairs for c in range(3)
+    ]  # fmt: skip
+    d, chosen = main_slice(prepare(pd.DataFrame(rows)))
+    assert len(d) == 3 and chosen == {"planner.n_inner_steps": 1}  # the weight is then one value: not a choice
+    assert set(zip(d["planner.n_inner_steps"], d["planner.prior_weight"])) == {(1, 1.0)}
+
+
 def test_paper_numbers_beside_ours(prepared):
     t, sentences = paper_comparison(prepared)
     nums = paper_numbers()

@@ -146,13 +146,15 @@ def _pick(values: pd.Series, preferred) -> object:
 
 def main_slice(d: pd.DataFrame, free: tuple[str, ...] = ()) -> tuple[pd.DataFrame, dict[str, object]]:
     """Rows of one setting of the variant axes (the paper's where present), per (task, method): a figure comparing
-    methods then compares like with like. ``free`` axes are left as they are. Returns (rows, chosen values)."""
+    methods then compares like with like. ``free`` axes are left as they are. Returns (rows, chosen values). Each
+    axis is picked among the rows the axes before it kept, so a spec whose excludes tie axes together (e.g. two
+    settings varied in pairs) still gets one of its own cells, never an empty combination."""
     keep = pd.Series(True, index=d.index)
     chosen: dict[str, object] = {}
     axes = [a for a in VARIANT_AXES if a not in free and a in d.columns]
     axes += sorted(c for c in d.columns if c.startswith(AXIS_PREFIXES) and c not in free)
     for axis in axes:
-        for _, g in d.groupby(["task", "method"], sort=True):
+        for _, g in d[keep].groupby(["task", "method"], sort=True):
             col = g[axis]
             if col.isna().all() or col.astype(str).nunique() <= 1:
                 continue

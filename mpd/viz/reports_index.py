@@ -20,7 +20,7 @@ import pandas as pd
 from mpd.viz.report_data import EXTRA, TRAIN, interval, main_slice, method_label, prepare, task_order
 from mpd.viz.report_tables import markdown_table
 
-RECIPE_STUDIES = ("recipe-study-", "priors-cpu", "guidance-sweep-")
+RECIPE_STUDIES = ("recipe-study-", "priors-cpu", "guidance-sweep-", "guidance-form-")
 PROBES = ("compile-2d", "precision-2d", "quick")
 GROUPS = {
     "paper": (
