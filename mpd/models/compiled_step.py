@@ -29,8 +29,9 @@ from mpd.models.step import EagerStep
 ENV = "MPD_TRAIN_COMPILE"
 MIN_STEPS = 2000  # steps in one call from which the compiled step is the default (MPD_TRAIN_COMPILE unset)
 # Inductor's C++ wrapper: the compiled graphs call their kernels from C++ instead of a Python function, which saves
-# the Python overhead of ~100 kernel launches a step (2-D net, Zen 4, 1 thread: +3-5 % steps/s; the kernels and
-# hence the numbers are the same; benchmarks/test_bench_training.py).
+# the Python overhead of the ~100 kernel launches of a step (Zen 4, 1 thread: +5 % steps/s on the 2-D net, +6 % on
+# the Panda net; the same kernels, so the same numbers; benchmarks/test_bench_training.py). It compiles longer the
+# first time (2-D net 10 s, Panda net ~160 s on 2 cores), which the MIN_STEPS default covers.
 INDUCTOR_OPTIONS = {"cpp_wrapper": True}
 
 
