@@ -40,9 +40,19 @@ from mpd.cli import check_device
     help="start from this checkpoint of a longer or shorter budget of the same training (a last.pt or a copy of one; "
     "constant or wsd schedule, a step both budgets pass through) instead of step 0",
 )
+@click.option(
+    "--data-parallel",
+    "data_parallel",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="train on this many processes, each on a slice of every batch (a diffusion prior on a CPU; ~1.4x faster "
+    "in wall-clock time with 2 on an idle 2-core CPU, with --threads each; the same model, up to float rounding)",
+)
 def train(
-    task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow, no_shipped, start_from
-):
+    task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow, no_shipped, start_from,
+    data_parallel,
+):  # fmt: skip
     """Train (or find, when this exact model exists in the cache or among the shipped priors) a prior; prints the
     checkpoint path."""
     import dataclasses
@@ -70,8 +80,9 @@ def train(
     arrays = training_arrays(task, ds, parametrization)
     del ds  # the training arrays hold what training needs; a paper-size dataset's control points are ~2 GB
     path = train_model(
-        arrays, kind, task.model(profile), spec, seed=seed, device=device, shipped=not no_shipped, start_from=start_from
-    )
+        arrays, kind, task.model(profile), spec, seed=seed, device=device, shipped=not no_shipped,
+        start_from=start_from, data_parallel=data_parallel,
+    )  # fmt: skip
     click.echo(f"model: {path}")
     if mlflow:
         from mpd.experiments.tracking import log_model_to_mlflow

@@ -75,6 +75,8 @@ class CompiledStep(EagerStep):
 
     def loss(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int) -> torch.Tensor:
         t, noise = self.net.loss_draws(xb, self.gen, **self.draw_kwargs)
+        if self.shard is not None:  # this rank's rows of the whole batch's draws (mpd.models.data_parallel)
+            xb, cb, t, noise = self.shard.take(xb, cb, t, noise)
         if self.compiled:
             try:
                 return self._loss_fn(xb, cb, t, noise)

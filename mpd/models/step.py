@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from mpd.device import Arithmetic
+from mpd.models.data_parallel import Shard
 from mpd.tasks.spec import TrainingSpec
 
 Batch = tuple[torch.Tensor, dict[str, torch.Tensor]]
@@ -55,7 +56,8 @@ def apply_ema(ema_params: Iterable[torch.Tensor], params: Iterable[torch.Tensor]
 class StepBody:
     """The state a step works on and the body every execution mode runs: loss (in the ``arithmetic`` of
     :func:`mpd.device.resolve`), backward, gradient clipping, AdamW, EMA. ``draw()`` gives the next batch;
-    ``running`` is the 0-d loss sum."""
+    ``running`` is the 0-d loss sum. ``shard``: this rank's rows of each batch and the ranks' gradient averaging, in a
+    data-parallel training (:mod:`mpd.models.data_parallel`); the loss it returns is then the ranks' mean."""
 
     autocast_cache = True  # autocast's weight cache (a captured step turns it off)
 
@@ -71,9 +73,11 @@ class StepBody:
         arithmetic: Arithmetic,
         draw: Callable[[], Batch] | None = None,
         running: torch.Tensor | None = None,
+        shard: Shard | None = None,
     ):
         self.kind, self.net, self.ema, self.opt, self.gen, self.ts = kind, net, ema, opt, gen, ts
         self.loss_kwargs, self.arithmetic, self.draw, self.running = loss_kwargs, arithmetic, draw, running
+        self.shard = shard
         self.params = list(net.parameters())
         self.ema_params = list(ema.parameters())
 
@@ -83,6 +87,12 @@ class StepBody:
     def loss(self, xb: torch.Tensor, cb: dict[str, torch.Tensor], step: int) -> torch.Tensor:
         if self.kind == "cvae" and self.ts.kl_warmup_steps > 0:
             self.loss_kwargs["kl_scale"] = min(1.0, step / self.ts.kl_warmup_steps)
+        if self.shard is not None:  # the whole batch's draws, then this rank's rows (mpd.models.data_parallel)
+            kw = dict(self.loss_kwargs)
+            t, noise = self.net.loss_draws(xb, self.gen, kw.pop("t_grid", None), kw.pop("t_grid_fraction", 0.0))
+            xb, cb, t, noise = self.shard.take(xb, cb, t, noise)
+            with self.autocast():
+                return self.net.loss_of_draws(xb, cb, t, noise, **kw)
         with self.autocast():
             return self.net.loss(xb, cb, self.gen, **self.loss_kwargs)
 
@@ -94,11 +104,12 @@ class StepBody:
         returns the detached loss."""
         loss = self.loss(xb, cb, step)
         loss.backward()
+        loss = self.shard.average(loss) if self.shard is not None else loss.detach()
         if self.ts.grad_clip_norm > 0:
             nn.utils.clip_grad_norm_(self.params, self.ts.grad_clip_norm)
         self.opt.step()
         apply_ema(self.ema_params, self.params, self.ema_w(step))
-        return loss.detach()
+        return loss
 
 
 class EagerStep(StepBody):

@@ -12,7 +12,8 @@ the same weights as an uninterrupted one.
 installed, or the lock to train it), :class:`TrainingState` (fresh, or resumed from ``last.pt`` or a ``wsd``
 trunk's snapshot), a step object of :mod:`mpd.models.step` (eager, compiled or captured: one step body),
 ``_run_steps`` (the loop: validation, progress) and :class:`Checkpointer` (``last.pt``, trunk snapshots,
-``meta.json`` and ``model.pt``).
+``meta.json`` and ``model.pt``). With ``data_parallel`` > 1 the loop runs on that many processes
+(:mod:`mpd.models.data_parallel`; the other ranks run :func:`follow`).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from tqdm.auto import tqdm
 
 from mpd import locks
 from mpd.device import Arithmetic, default_device, resolve, synchronize, training_request
+from mpd.models import data_parallel as dp
 from mpd.models.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
@@ -670,15 +672,17 @@ def _make_step(
     loss_kwargs: dict[str, Any],
     arithmetic: Arithmetic,
     train: _Data,
+    shard: dp.Shard | None = None,
 ) -> TrainingStep:
-    """The step object of ``mode``: its batches drawn from ``train`` with the training's generator."""
+    """The step object of ``mode``: its batches drawn from ``train`` with the training's generator (``shard``: this
+    rank's part of each, in a data-parallel training)."""
     n_train, gen, device = len(train), state.gen, state.running.device
 
     def draw() -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return train.batch(torch.randint(n_train, (ts.batch_size,), generator=gen, device=device))
 
     cls = {"cuda_graph": GraphedStep, "compiled": CompiledStep, "eager": EagerStep}[mode]
-    return cls(kind, state.net, state.ema, state.opt, gen, ts, loss_kwargs, arithmetic, draw, state.running)
+    return cls(kind, state.net, state.ema, state.opt, gen, ts, loss_kwargs, arithmetic, draw, state.running, shard)
 
 
 def _run_steps(
@@ -690,9 +694,11 @@ def _run_steps(
     seed: int,
     checkpointer: Checkpointer,
     bar: tqdm,
+    any_rank: Callable[[bool], bool] | None = None,
 ) -> None:
     """Steps up to ``end``: each one, then the validation loss (of the EMA) every ``val_every`` steps and at the
-    last, the progress bar, the checkpoints. Ctrl-C stops between two whole steps after saving ``last.pt``."""
+    last, the progress bar, the checkpoints. Ctrl-C stops between two whole steps after saving ``last.pt``; in a
+    data-parallel training (``any_rank``: whether a flag holds on any rank) every rank stops after the same step."""
     last_train = last_val = float("nan")
     with _deferred_sigint() as interrupted:
         while state.step < end:
@@ -715,7 +721,8 @@ def _run_steps(
                 bar.set_postfix(loss=f"{last_train:.4f}", val=f"{last_val:.4f}", refresh=False)
                 bar.update(step - bar.n)
             checkpointer.after_step(state)
-            if interrupted():  # Ctrl-C: stop between two whole steps, so the resume is exact
+            stop = interrupted() if any_rank is None else any_rank(interrupted())
+            if stop:  # Ctrl-C: stop between two whole steps, so the resume is exact
                 checkpointer.save(state)
                 bar.close()
                 raise KeyboardInterrupt(f"training interrupted at step {step}; {checkpointer.last_path} resumes it")
@@ -736,6 +743,7 @@ def train_model(
     cuda_graph: bool | None = None,
     compile_step: bool | None = None,
     start_from: str | Path | None = None,
+    data_parallel: int = 1,
 ) -> Path:
     """Train (or find) the model of this identity; return the path of its ``model.pt``.
 
@@ -753,14 +761,17 @@ def train_model(
     The modes a checkpoint's steps ran in are recorded as ``execution`` (``[[first step, mode], ...]``) wherever a
     mode other than eager was used. ``start_from``: a checkpoint of another budget of this training to start from
     instead of step 0 (:func:`start_state` says which qualify; the model records it as ``started_from``); its own
-    ``last.pt``, when there is one, still comes first.
+    ``last.pt``, when there is one, still comes first. ``data_parallel``: run the steps on this many processes of
+    this machine, each on a slice of every batch (:mod:`mpd.models.data_parallel`; a diffusion training on a CPU; an
+    execution mode, recorded as ``<mode>/<ranks>``).
     """
     ts = _checked_spec(arrays, kind, model_spec, training_spec)
+    device = torch.device(device) if device is not None else default_device()
+    dp.check(kind, device, ts.batch_size, data_parallel)
     claim = _find_or_claim(arrays, kind, model_spec, ts, seed, cache, shipped)
     if isinstance(claim, Path):
         return claim
     identity = claim.identity
-    device = torch.device(device) if device is not None else default_device()
 
     x_norm, ctx_norms = fit_normalizers(arrays)
     train = _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device)
@@ -796,12 +807,25 @@ def train_model(
             f"{kind} {arrays.task_name}: the training step's loss is compiled on the first step (torch.compile, "
             "1-8 min on a busy 2-core CPU, less from inductor's cache); MPD_TRAIN_COMPILE=0 trains eagerly"
         )
-    step_fn = _make_step(mode, kind, state, ts, training_loss_kwargs(kind, ts, device), arithmetic, train)
-    _record_execution(record, mode, _execution_record(resumed, state.step, mode), device)
-
+    executed = dp.label(mode, data_parallel)
+    _record_execution(record, executed, _execution_record(resumed, state.step, executed), device)
     checkpointer = Checkpointer(claim.out, record, ts, trunk)
-    state.net.train()
-    _run_steps(step_fn, state, ts, end, val, seed, checkpointer, bar)
+    loss_kwargs = training_loss_kwargs(kind, ts, device)
+    if data_parallel == 1:
+        state.net.train()
+        step_fn = _make_step(mode, kind, state, ts, loss_kwargs, arithmetic, train)
+        _run_steps(step_fn, state, ts, end, val, seed, checkpointer, bar)
+    else:
+        payload = {
+            "state": dp.state_bytes(state.checkpoint(state.wall)), "end": end, "arrays": arrays, "kind": kind,
+            "model_spec": model_spec, "ts": ts, "seed": seed, "mode": mode,
+        }  # fmt: skip
+        n_params = sum(p.numel() for p in state.net.parameters())
+        with dp.group(data_parallel, n_params, payload) as link:
+            state.net.train()
+            shard = dp.Shard(link, ts.batch_size, list(state.net.parameters()))
+            step_fn = _make_step(mode, kind, state, ts, loss_kwargs, arithmetic, train, shard)
+            _run_steps(step_fn, state, ts, end, val, seed, checkpointer, bar, link.any)
     bar.close()
     synchronize(device)
     if state.step < ts.steps:  # stopped by stop_after
@@ -820,6 +844,48 @@ def train_model(
         final_train_loss=history[-1]["train_loss"] if history else None,
         final_val_loss=history[-1]["val_loss"] if history else None,
     )  # fmt: skip
+
+
+class _NoFiles(Checkpointer):
+    """A data-parallel follower's checkpointer: rank 0 writes the files."""
+
+    def __init__(self) -> None:
+        self.last_path = Path("last.pt (rank 0's)")
+
+    def save(self, state: TrainingState, path: Path | None = None) -> None:
+        pass
+
+    def after_step(self, state: TrainingState) -> None:
+        pass
+
+
+def follow(
+    link: dp.Link,
+    state: bytes,
+    end: int,
+    arrays: TrainingArrays,
+    kind: str,
+    model_spec: ModelSpec,
+    ts: TrainingSpec,
+    seed: int,
+    mode: str,
+) -> None:
+    """Rank ``link.rank`` (> 0) of a data-parallel training whose rank 0 runs :func:`train_model` (``state``: its
+    training state, ``end``: its last step): the same data and network, this rank's slice of each batch; no files,
+    no validation (rank 0's)."""  # fmt: skip
+    device = torch.device("cpu")
+    x_norm, ctx_norms = fit_normalizers(arrays)
+    train = _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device)
+    ours = TrainingState.fresh(kind, arrays, model_spec, ts, seed, device)
+    ours.load(dp.read_state(state), device)
+    state = ours
+    state.net.train()
+    arithmetic = resolve(device, training_request(ts.precision))
+    shard = dp.Shard(link, ts.batch_size, list(state.net.parameters()))
+    step_fn = _make_step(mode, kind, state, ts, training_loss_kwargs(kind, ts, device), arithmetic, train, shard)
+    empty = _Data(train.x[:0], {k: v[:0] for k, v in train.context.items()})
+    bar = tqdm(disable=True)
+    _run_steps(step_fn, state, ts, end, empty, seed, _NoFiles(), bar, link.any)
 
 
 def _shipped_eager(task_name: str, kind: str, parametrization: str, identity: str) -> bool:
