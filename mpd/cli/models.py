@@ -49,9 +49,17 @@ from mpd.cli import check_device
     help="train on this many processes, each on a slice of every batch (a diffusion prior on a CPU; ~1.4x faster "
     "in wall-clock time with 2 on an idle 2-core CPU, with --threads each; the same model, up to float rounding)",
 )
+@click.option(
+    "--init-from",
+    "init_from",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="start from this checkpoint's EMA weights (a model.pt, a shipped prior, a last.pt; the same task data and "
+    "network) with a fresh optimizer instead of the seed's initialization: another model, whose identity says so",
+)
 def train(
     task_name, kind, parametrization, profile, dataset, steps, seed, device, threads, mlflow, no_shipped, start_from,
-    data_parallel,
+    data_parallel, init_from,
 ):  # fmt: skip
     """Train (or find, when this exact model exists in the cache or among the shipped priors) a prior; prints the
     checkpoint path."""
@@ -81,7 +89,7 @@ def train(
     del ds  # the training arrays hold what training needs; a paper-size dataset's control points are ~2 GB
     path = train_model(
         arrays, kind, task.model(profile), spec, seed=seed, device=device, shipped=not no_shipped,
-        start_from=start_from, data_parallel=data_parallel,
+        start_from=start_from, data_parallel=data_parallel, init_from=init_from,
     )  # fmt: skip
     click.echo(f"model: {path}")
     if mlflow:

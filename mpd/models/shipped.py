@@ -192,6 +192,8 @@ def ship(
         "weights_dtype": ckpt["weights_dtype"],
         "wall_time_s": float(ckpt.get("wall_time_s", 0.0)),
         "resumed_from_trunk_step": ckpt.get("resumed_from_trunk_step"),
+        "started_from": ckpt.get("started_from"),  # mpd train --from: the checkpoint of another budget
+        "init_from": ckpt.get("init_from"),  # mpd train --init-from: the weights it started from (identity too)
         "execution": ckpt.get("execution"),  # None: eager throughout (mpd.models.train, compile_step)
         "cpu": meta.get("cpu") or cpu_model(),
         "device": meta.get("device"),

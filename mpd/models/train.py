@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -115,17 +116,17 @@ def model_identity(
     model_spec: ModelSpec,
     training_spec: TrainingSpec,
     seed: int,
+    init_from: dict[str, Any] | None = None,
 ) -> str:
-    return stable_hash(
-        dataset_hash,
-        kind,
-        parametrization,
-        parametrization_settings,
-        network_identity(model_spec, kind),
-        training_identity(training_spec, kind),
-        seed,
-        {"network_version": NETWORK_VERSION},
-    )
+    """The model's identity; ``init_from`` (:func:`init_origin`): the weights a training started from instead of
+    its seed's initialization, which enter the identity only where given (the other models keep theirs)."""
+    parts = [
+        dataset_hash, kind, parametrization, parametrization_settings, network_identity(model_spec, kind),
+        training_identity(training_spec, kind), seed, {"network_version": NETWORK_VERSION},
+    ]  # fmt: skip
+    if init_from is not None:
+        parts.append({"init_from": init_from})
+    return stable_hash(*parts)
 
 
 def trunk_identity(
@@ -396,11 +397,13 @@ def _find_or_claim(
     seed: int,
     cache: str | Path | None,
     shipped: bool,
+    init_from: dict[str, Any] | None = None,
 ) -> Path | _Claim:
     """The ``model.pt`` of this identity when it exists or a shipped prior installs it, else the claim to train it."""
     identity = model_identity(
-        arrays.dataset_hash, kind, arrays.parametrization, arrays.parametrization_settings, model_spec, ts, seed
-    )
+        arrays.dataset_hash, kind, arrays.parametrization, arrays.parametrization_settings, model_spec, ts, seed,
+        init_from,
+    )  # fmt: skip
     out = model_dir(arrays.task_name, kind, arrays.parametrization, identity, cache)
     final_path, last_path = out / MODEL_FILE, out / LAST_FILE
     if final_path.is_file():
@@ -495,6 +498,8 @@ class TrainingState:
 # the fields of a checkpoint that must equal this training's for its state to be one of this training's states
 # (mpd train --from); the training spec is compared apart (every field but the budget's)
 SAME_TRAINING_FIELDS = ("kind", "dataset_hash", "parametrization", "parametrization_settings", "model_spec", "seed")
+# the fields a checkpoint must share with a training that starts from its weights (mpd train --init-from)
+SAME_NETWORK_FIELDS = ("kind", "dataset_hash", "parametrization", "parametrization_settings", "model_spec")
 # training-spec fields that do not act on the state: the budget (steps; decay_fraction acts only after the stable
 # phase) and how often the loop validates and saves
 BUDGET_FIELDS = ("steps", "decay_fraction", "val_every", "checkpoint_every")
@@ -522,9 +527,9 @@ def start_state(path: str | Path, record: dict[str, Any], ts: TrainingSpec, devi
             path, "training_spec.lr_schedule", "cosine: its learning rate depends on the budget at every step, so no "
             "other budget passes through this training's states (constant and wsd can start from one)",
         )  # fmt: skip
-    for name in SAME_TRAINING_FIELDS:
-        if state.get(name) != record[name]:
-            raise ConfigError(path, name, f"is {state.get(name)!r}, this training's is {record[name]!r}")
+    for name in (*SAME_TRAINING_FIELDS, "init_from"):  # init_from: only in a continued training's record
+        if state.get(name) != record.get(name):
+            raise ConfigError(path, name, f"is {state.get(name)!r}, this training's is {record.get(name)!r}")
     theirs, ours = dict(state.get("training_spec") or {}), dict(record["training_spec"])
     differ = sorted(k for k in theirs.keys() | ours.keys() if k not in BUDGET_FIELDS and theirs.get(k) != ours.get(k))
     if differ:
@@ -538,6 +543,32 @@ def start_state(path: str | Path, record: dict[str, Any], ts: TrainingSpec, devi
     if step > theirs_end:
         raise ConfigError(path, "step", f"is {step}, in its own run's decay (its stable phase ends at {theirs_end})")
     return state
+
+
+def init_origin(
+    path: str | Path, arrays: TrainingArrays, kind: str, model_spec: ModelSpec, device: torch.device
+) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The EMA weights of a checkpoint (a ``model.pt``, a shipped prior, a ``last.pt`` or a copy of one) for a
+    training to start from instead of its seed's initialization (``mpd train --init-from``), and where they came
+    from: the checkpoint's identity and step and the sha256 of the weights, which enter the new model's identity.
+    The checkpoint must be of the same kind, dataset, parametrization and network (:class:`ConfigError` naming
+    the file and the field otherwise): a training continued from another's weights with a fresh optimizer, e.g.
+    across machines that keep no cache, where only the shipped EMA weights travel."""
+    state = read_checkpoint(path, map_location=device)
+    ours = {
+        "kind": kind, "dataset_hash": arrays.dataset_hash, "parametrization": arrays.parametrization,
+        "parametrization_settings": to_dict(arrays.parametrization_settings), "model_spec": to_dict(model_spec),
+    }  # fmt: skip
+    for name in SAME_NETWORK_FIELDS:
+        if state.get(name) != ours[name]:
+            raise ConfigError(path, name, f"is {state.get(name)!r}, this training's is {ours[name]!r}")
+    ema = {k: v.float() for k, v in state["ema_weights"].items()}
+    digest = hashlib.sha256()
+    for k in sorted(ema):
+        digest.update(k.encode())
+        digest.update(ema[k].cpu().contiguous().numpy().tobytes())
+    origin = {"identity": state["identity"], "step": int(state["step"]), "ema_sha256": digest.hexdigest()}
+    return origin, ema
 
 
 def _resume_state(
@@ -744,6 +775,7 @@ def train_model(
     compile_step: bool | None = None,
     start_from: str | Path | None = None,
     data_parallel: int = 1,
+    init_from: str | Path | None = None,
 ) -> Path:
     """Train (or find) the model of this identity; return the path of its ``model.pt``.
 
@@ -763,12 +795,15 @@ def train_model(
     instead of step 0 (:func:`start_state` says which qualify; the model records it as ``started_from``); its own
     ``last.pt``, when there is one, still comes first. ``data_parallel``: run the steps on this many processes of
     this machine, each on a slice of every batch (:mod:`mpd.models.data_parallel`; a diffusion training on a CPU; an
-    execution mode, recorded as ``<mode>/<ranks>``).
+    execution mode, recorded as ``<mode>/<ranks>``). ``init_from``: a checkpoint whose EMA weights this training
+    starts from, as its weights and its EMA, with a fresh optimizer and the step count at 0 (:func:`init_origin`;
+    part of the identity, recorded as ``init_from``).
     """
     ts = _checked_spec(arrays, kind, model_spec, training_spec)
     device = torch.device(device) if device is not None else default_device()
     dp.check(kind, device, ts.batch_size, data_parallel)
-    claim = _find_or_claim(arrays, kind, model_spec, ts, seed, cache, shipped)
+    origin, init_weights = init_origin(init_from, arrays, kind, model_spec, device) if init_from else (None, None)
+    claim = _find_or_claim(arrays, kind, model_spec, ts, seed, cache, shipped, origin)
     if isinstance(claim, Path):
         return claim
     identity = claim.identity
@@ -777,9 +812,15 @@ def train_model(
     train = _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device)
     val = _to_device(arrays, arrays.indices(SPLIT_VAL)[:VAL_MAX_SAMPLES], x_norm, ctx_norms, device)
     record = _base_record(arrays, kind, identity, model_spec, ts, seed, x_norm, ctx_norms)
-    trunk = _Trunk.of(arrays, kind, model_spec, ts, seed, cache)
+    # a continued training (init_from) has no trunk: its stable phase is not the seed's
+    trunk = _Trunk.of(arrays, kind, model_spec, ts, seed, cache) if origin is None else None
     record["trunk"] = trunk.key if trunk is not None else None
+    if origin is not None:
+        record["init_from"] = origin
     state = TrainingState.fresh(kind, arrays, model_spec, ts, seed, device)
+    if init_weights is not None:  # replaced below by a resumed state's own weights
+        state.net.load_state_dict(init_weights)
+        state.ema.load_state_dict(init_weights)
     start = (start_from, start_state(start_from, record, ts, device)) if start_from is not None else None
     resumed, origin = _resume_state(claim, trunk, device, start)
     record.update(origin)
