@@ -32,7 +32,7 @@ from mpd.models.compiled_step import cxx_available
 
 pytestmark = pytest.mark.benchmark
 
-CASES = {"2d-paper": ("2d", "paper", 8, 40), "panda-cpu": ("panda", "cpu", 4, 8)}  # case, profile, rounds, steps a round
+CASES = {"2d-paper": ("2d", "paper", 8, 40), "panda-cpu": ("panda", "cpu", 4, 8)}  # case, profile, rounds, steps
 
 
 def _prepare(case: str, profile: str):

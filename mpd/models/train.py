@@ -797,7 +797,8 @@ def train_model(
     this machine, each on a slice of every batch (:mod:`mpd.models.data_parallel`; a diffusion training on a CPU; an
     execution mode, recorded as ``<mode>/<ranks>``). ``init_from``: a checkpoint whose EMA weights this training
     starts from, as its weights and its EMA, with a fresh optimizer and the step count at 0 (:func:`init_origin`;
-    part of the identity, recorded as ``init_from``).
+    part of the identity, recorded as ``init_from``); its draws come from ``seed`` as a fresh training's do (the
+    batches the continued run drew at its start: i.i.d. draws, so no harm; another ``seed`` gives others).
     """
     ts = _checked_spec(arrays, kind, model_spec, training_spec)
     device = torch.device(device) if device is not None else default_device()
