@@ -10,6 +10,8 @@ drawing its own batch, a missing average (gradients 2x or 1/2) or an unsynchroni
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 import signal
 
 import pytest
@@ -75,7 +77,11 @@ def test_one_process_and_two_ranks_resume_each_other_exactly(tmp_path):
     ck_r, w_r, e_r = _state(_run(tmp_path, "r", spec, data_parallel=2))
     assert ck_r["execution"] == [[0, "eager"], [13, "eager/2"]]
     # 2 ranks to 13 steps, then 2 ranks again: bit for bit the uninterrupted 2-rank run
-    _run(tmp_path, "s", spec, stop_after=13, data_parallel=2)
+    copy = tmp_path / "step-13.pt"
+    shutil.copy(_run(tmp_path, "s", spec, stop_after=13, data_parallel=2), copy)
+    # the 13-step budget made from that copy is that state, with the modes that made it (the call adds no step)
+    budget = read_checkpoint(_run(tmp_path, "t", dataclasses.replace(spec, steps=13), start_from=copy))
+    assert budget["step"] == 13 and budget["execution"] == [[0, "eager/2"]]
     _, w_s, e_s = _state(_run(tmp_path, "s", spec, data_parallel=2))
     _, w_2, e_2 = _state(_run(tmp_path, "dp", spec, data_parallel=2))
     assert all(torch.equal(w_s[k], w_2[k]) for k in w_2) and all(torch.equal(e_s[k], e_2[k]) for k in e_2)

@@ -850,7 +850,10 @@ def train_model(
             "1-8 min on a busy 2-core CPU, less from inductor's cache); MPD_TRAIN_COMPILE=0 trains eagerly"
         )
     executed = dp.label(mode, data_parallel)
-    _record_execution(record, executed, _execution_record(resumed, state.step, executed), device)
+    execution = _execution_record(resumed, state.step, executed)
+    if end == state.step and len(execution) > 1 and execution[-1][0] == state.step:
+        execution.pop()  # a call that takes no step (a budget that ends at its checkpoint) adds no mode
+    _record_execution(record, executed, execution, device)
     checkpointer = Checkpointer(claim.out, record, ts, trunk)
     loss_kwargs = training_loss_kwargs(kind, ts, device)
     if data_parallel == 1:
