@@ -46,8 +46,8 @@ from mpd.cli import check_device
     type=click.IntRange(min=1),
     default=1,
     show_default=True,
-    help="train on this many processes, each on a slice of every batch (a diffusion prior on a CPU; ~1.4x faster "
-    "in wall-clock time with 2 on an idle 2-core CPU, with --threads each; the same model, up to float rounding)",
+    help="train on this many processes, each on a slice of every batch (a diffusion prior on a CPU; with 2 on an "
+    "idle 2-core CPU and --threads 1, 1.3-1.6x faster in wall-clock time; the same model, up to float rounding)",
 )
 @click.option(
     "--init-from",
