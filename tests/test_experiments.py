@@ -92,6 +92,10 @@ def write_spec(root: Path, name: str, body: str = "", dataset: str = "tiny0", n_
         ('[axes]\n"planner.guide_rate" = [1.0]\n', "axes.planner.guide_rate"),
         ("[axes]\nn_samples = [0]\n", "axes.n_samples"),
         ('[task]\ncontexts = "sampled"\nturn_contexts = true\n', f"tasks.{TASK}.turn_contexts"),
+        ('[task]\nmodels.diffusion-splines = { profile = "paper" }\n', f"tasks.{TASK}.models.diffusion-splines"),
+        ('[task]\nmodels.diffusion-bspline = { profile = "nope" }\n', f"tasks.{TASK}.models.diffusion-bspline.profile"),
+        ("[task]\nmodels.cvae = { train_steps = 0 }\n", f"tasks.{TASK}.models.cvae.train_steps"),
+        ("[task]\nmodels.cvae = {}\n", f"tasks.{TASK}.models.cvae"),
     ],
 )
 def test_spec_errors_name_file_and_key(tmp_path, edit, where):
@@ -584,6 +588,55 @@ def test_training_chains_join_the_budgets_of_one_recipe_and_one_network_only():
     assert _chain_key(short) != _chain_key(job(**{"steps": 3000, "model.unet_dim": 16}))
     assert _chain_key(short) != _chain_key(job(steps=3000, lr=2e-3))
     assert _chain_key(job(lr_schedule="cosine")) != _chain_key(job(lr_schedule="cosine"))
+
+
+def test_a_model_of_its_own_profile_trains_beside_the_task_profile_models(tmp_path):
+    """`[tasks."NAME".models."diffusion-bspline"]`: that prior takes its own profile and step count (its identity is
+    the one `mpd train --profile P --steps N` gives), the task's other models keep the task's profile; the
+    "<kind>-<parametrization>" entry wins over the "<kind>" one field by field; --scale shrinks its steps too."""
+    from mpd.experiments.artifacts import _model_identity, training_settings
+    from mpd.experiments.spec import ModelProfile, TaskSettings, scale_spec
+    from mpd.tasks import load_task
+
+    p = tmp_path / "own.toml"
+    p.write_text(
+        textwrap.dedent(f"""
+        name = "own"
+        [axes]
+        task = ["{TASK}"]
+        method = ["dprior", "cvae"]
+        parametrization = ["bspline", "waypoints"]
+        [tasks."{TASK}"]
+        dataset = "{TASK}-paper"
+        models."diffusion-bspline" = {{ profile = "paper", train_steps = 55000 }}
+        models.diffusion = {{ train_steps = 7000 }}
+        """)
+    )
+    spec = load_spec(p)
+    ts, task = spec.data.tasks[TASK], load_task(TASK)
+    assert (ts.profile_for("diffusion", "bspline"), ts.steps_for("diffusion", "bspline")) == ("paper", 55000)
+    assert (ts.profile_for("diffusion", "waypoints"), ts.steps_for("diffusion", "waypoints")) == ("cpu", 7000)
+    assert (ts.profile_for("cvae", "bspline"), ts.steps_for("cvae", "bspline")) == ("cpu", None)
+    paper = training_settings(task, ts, (), "diffusion", "bspline")
+    assert paper.steps == 55000 and paper.lr == task.training("paper").lr != task.training("cpu").lr
+    assert training_settings(task, ts, (), "cvae", "bspline") == task.training("cpu")
+    content = "0" * 64
+    alone = {
+        ("diffusion", "bspline"): TaskSettings(dataset="d", profile="paper", train_steps=55000),
+        ("diffusion", "waypoints"): TaskSettings(dataset="d", train_steps=7000),
+        ("cvae", "bspline"): TaskSettings(dataset="d"),
+    }
+    for (kind, par), other in alone.items():
+        assert _model_identity(task, ts, content, kind, par, ()) == _model_identity(task, other, content, kind, par, ())
+    assert _model_identity(task, ts, content, "diffusion", "bspline", ()) != _model_identity(
+        task, alone[("diffusion", "waypoints")], content, "diffusion", "bspline", ()
+    )
+    small = scale_spec(spec, 1e-3).data.tasks[TASK]
+    assert small.models == {
+        "diffusion-bspline": ModelProfile(profile="paper", train_steps=55),
+        "diffusion": ModelProfile(train_steps=20),
+    }
+    assert small.steps_for("cvae", "bspline") == 24  # the task's (cpu) 24000 x 1e-3
 
 
 # ------------------------------------------------------------------------------------- shipped evaluation inputs

@@ -43,3 +43,13 @@ def test_index_of_a_changed_folder_differs(tmp_path):
     df.loc[df["method"] == "mpd", "fraction_valid"] *= 0.5
     df.to_parquet(tmp_path / "quick" / "results.parquet", index=False)
     assert reports_index(tmp_path) != before
+
+
+def test_the_priors_column_names_a_model_of_its_own_profile():
+    from mpd.viz.reports_index import _priors
+
+    spec = {"tasks": {"A": {"profile": "cpu", "cvae_profile": "gpu"}, "B": {}}}
+    assert _priors(spec) == "`cpu` (CVAE `gpu`)"
+    spec["tasks"]["A"]["models"] = {"diffusion-bspline": {"profile": "paper", "train_steps": 140000}}
+    spec["tasks"]["B"]["models"] = {"cvae": {"train_steps": 500}}
+    assert _priors(spec) == "`cpu` (CVAE `gpu`); cvae `cpu` 500 steps, diffusion-bspline `paper` 140,000 steps"

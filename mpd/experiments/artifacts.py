@@ -144,19 +144,21 @@ def model_settings(task: Task, overrides: tuple = (), profile: str | None = None
     return dataclasses.replace(base, **mine) if mine else base
 
 
-def training_settings(task: Task, ts, overrides: tuple = (), kind: str = "diffusion"):
-    """The task's training profile of the spec for a model of ``kind``, with the spec's ``train_steps`` and a cell's
-    ``training.*`` values (its ``model.*`` values are the network's: `model_settings`)."""
+def training_settings(task: Task, ts, overrides: tuple = (), kind: str = "diffusion", par: str | None = None):
+    """The task's training profile of the spec for a model of ``kind`` and parametrization ``par``, with the spec's
+    step count (``train_steps``, the task's or the model's) and a cell's ``training.*`` values (its ``model.*``
+    values are the network's: `model_settings`)."""
     from mpd.experiments.spec import MODEL_PREFIX
 
     overrides = tuple((k, v) for k, v in overrides if not k.startswith(MODEL_PREFIX))
-    spec = task.training(ts.profile_for(kind))
-    if ts.train_steps is not None:
+    spec = task.training(ts.profile_for(kind, par))
+    steps = ts.steps_for(kind, par)
+    if steps is not None:
         spec = dataclasses.replace(
             spec,
-            steps=ts.train_steps,
-            checkpoint_every=min(spec.checkpoint_every, ts.train_steps),
-            val_every=min(spec.val_every, ts.train_steps),
+            steps=steps,
+            checkpoint_every=min(spec.checkpoint_every, steps),
+            val_every=min(spec.val_every, steps),
         )
     return dataclasses.replace(spec, **dict(overrides)) if overrides else spec
 
@@ -181,8 +183,8 @@ def _model_identity(task: Task, ts, content_hash: str, kind: str, par: str, trai
         kind,
         par,
         settings,
-        model_settings(task, training, ts.profile_for(kind)),
-        training_settings(task, ts, training, kind),
+        model_settings(task, training, ts.profile_for(kind, par)),
+        training_settings(task, ts, training, kind, par),
         0,
     )
 
@@ -251,8 +253,8 @@ def needs(spec, cells) -> list[Need]:
         content = _content_hash(rd) if not bad else committed_content_hash(rd)
         for key in keys:
             kind, par, tr = key
-            train = training_settings(task, ts, tr, kind)
-            steps_s = _STEPS_PER_S.get(len(model_settings(task, tr, ts.profile_for(kind)).unet_dim_mults), 2.0)
+            train = training_settings(task, ts, tr, kind, par)
+            steps_s = _STEPS_PER_S.get(len(model_settings(task, tr, ts.profile_for(kind, par)).unet_dim_mults), 2.0)
             if content is None:
                 out.append(
                     Need(
@@ -349,8 +351,8 @@ def resolve(
                     kind,
                     par,
                     arrays[par],
-                    model_settings(task, tr, ts.profile_for(kind)),
-                    training_settings(task, ts, tr, kind),
+                    model_settings(task, tr, ts.profile_for(kind, par)),
+                    training_settings(task, ts, tr, kind, par),
                     tr,
                 )
             )

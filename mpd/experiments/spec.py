@@ -23,6 +23,15 @@ runs every remaining *cell* on the same evaluation contexts. Example::
     dataset = "EnvSimple2D-RobotPointMass2D-small"
     profile = "cpu"
 
+A task's models train with its table's ``profile`` (and ``train_steps``, when given); one model can take its own
+(``diffusion``, ``cvae`` or ``<kind>-<parametrization>``; its identity is then the one ``mpd train --profile P
+--steps N`` gives, so a shipped prior of that budget is found)::
+
+    [tasks."EnvSimple2D-RobotPointMass2D"]
+    dataset = "EnvSimple2D-RobotPointMass2D-paper"
+    profile = "cpu"
+    models."diffusion-bspline" = { profile = "paper", train_steps = 140000 }
+
 A spec that differs from another in a few fields extends it and gives only those (tables merge key by key, lists and
 values replace)::
 
@@ -79,6 +88,24 @@ TRAINING_PREFIX = "training."
 MODEL_PREFIX = "model."
 
 
+# the models a task's table can give a profile of their own: "<kind>" (every parametrization) or "<kind>-<par>"
+MODEL_KINDS = ("diffusion", "cvae")
+MODEL_KEYS = (*MODEL_KINDS, *(f"{k}-{p}" for k in MODEL_KINDS for p in PARAMETRIZATIONS))
+
+
+@dataclass(frozen=True)
+class ModelProfile:
+    """One model's training profile and step count where they differ from its task's in a spec
+    (``[tasks."NAME".models."diffusion-bspline"]``): a prior trained longer, by another recipe, beside the others."""
+
+    profile: str | None = None
+    train_steps: int | None = None  # override that profile's step count
+
+    def validate(self) -> None:
+        if self.train_steps is not None and (isinstance(self.train_steps, bool) or self.train_steps < 1):
+            raise ConfigError("<dict>", "train_steps", f"{self.train_steps!r} is not a positive integer")
+
+
 @dataclass(frozen=True)
 class TaskSettings:
     """Which dataset and which training profile a task uses in this spec."""
@@ -100,10 +127,37 @@ class TaskSettings:
     # set by --scale (scale_spec), not in spec files: the dataset's contexts are multiplied by it (mpd.data, a
     # definition of its own with its own identity, never the full-size one)
     dataset_scale: float | None = None
+    # per model ("diffusion-bspline", "cvae", ... : MODEL_KEYS): its own profile and step count, where they differ
+    # from the ones above (e.g. the EnvSimple2D B-spline prior of the `paper` recipe at 140k steps beside the `cpu`
+    # profile's waypoint prior and CVAE); the "<kind>-<parametrization>" entry before the "<kind>" one, field by field
+    models: dict[str, ModelProfile] = field(default_factory=dict)
 
-    def profile_for(self, kind: str) -> str:
-        """The training profile of a model of ``kind`` ("diffusion" or "cvae")."""
+    def validate(self) -> None:
+        for key, m in self.models.items():
+            if key not in MODEL_KEYS:
+                raise ConfigError("<dict>", f"models.{key}", f"not a model (one of: {', '.join(MODEL_KEYS)})")
+            if m.profile is None and m.train_steps is None:
+                raise ConfigError("<dict>", f"models.{key}", "gives neither profile nor train_steps")
+
+    def _own(self, kind: str, parametrization: str | None, name: str) -> Any:
+        """The value of ``name`` (a ModelProfile field) the most specific ``models`` entry of this model gives."""
+        for key in (f"{kind}-{parametrization}", kind):
+            m = self.models.get(key)
+            if m is not None and getattr(m, name) is not None:
+                return getattr(m, name)
+        return None
+
+    def profile_for(self, kind: str, parametrization: str | None = None) -> str:
+        """The training profile of a model of ``kind`` ("diffusion" or "cvae") and ``parametrization``."""
+        own = self._own(kind, parametrization, "profile")
+        if own is not None:
+            return own
         return self.cvae_profile if kind == "cvae" and self.cvae_profile is not None else self.profile
+
+    def steps_for(self, kind: str, parametrization: str | None = None) -> int | None:
+        """The step count that replaces the profile's for this model (None: the profile's)."""
+        own = self._own(kind, parametrization, "train_steps")
+        return own if own is not None else self.train_steps
 
 
 @dataclass(frozen=True)
@@ -396,6 +450,13 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
             )
         if ts.contexts not in ("held-out", "sampled"):
             raise ConfigError(path, f"tasks.{key}.contexts", f"{ts.contexts!r} is not one of: 'held-out', 'sampled'")
+        for model, m in ts.models.items():
+            if m.profile is not None:
+                task = load_task(files[name])
+                if m.profile not in task.spec.training:
+                    have = ", ".join(task.spec.training)
+                    why = f"{m.profile!r} is not a training profile of {name} (it has: {have})"
+                    raise ConfigError(path, f"tasks.{key}.models.{model}.profile", why)
         if ts.turn_contexts and ts.contexts != "held-out":
             why = "turns held-out contexts only (contexts = 'held-out')"
             raise ConfigError(path, f"tasks.{key}.turn_contexts", why)
@@ -528,10 +589,23 @@ def scale_spec(spec: Spec, factor: float) -> Spec:
     d = spec.data
     tasks = {}
     for name, ts in d.tasks.items():
-        steps = ts.train_steps or load_task(spec.task_file(name)).training(ts.profile).steps
+        task = load_task(spec.task_file(name))
+        steps = ts.train_steps or task.training(ts.profile).steps
+        models = {
+            key: dataclasses.replace(
+                m,
+                train_steps=_scaled(
+                    ts.steps_for(*key.split("-")) or task.training(ts.profile_for(*key.split("-"))).steps,
+                    factor,
+                    SCALE_MIN_STEPS,
+                ),
+            )
+            for key, m in ts.models.items()
+        }
         tasks[name] = dataclasses.replace(
             ts,
             train_steps=_scaled(steps, factor, SCALE_MIN_STEPS),
+            models=models,
             n_contexts=None if ts.n_contexts is None else _scaled(ts.n_contexts, factor, SCALE_MIN_CONTEXTS),
             dataset_scale=factor,
         )

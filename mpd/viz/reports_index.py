@@ -65,7 +65,16 @@ def _priors(spec: dict) -> str:
     profiles = sorted({t.get("profile", "cpu") for t in tasks})
     cvae = sorted({t["cvae_profile"] for t in tasks if t.get("cvae_profile")} - set(profiles))
     text = ", ".join(f"`{p}`" for p in profiles)
-    return text + (f" (CVAE {', '.join(f'`{p}`' for p in cvae)})" if cvae else "")
+    text += f" (CVAE {', '.join(f'`{p}`' for p in cvae)})" if cvae else ""
+    own = sorted(
+        {
+            f"{model} `{m.get('profile') or t.get('profile', 'cpu')}`"
+            + (f" {m['train_steps']:,} steps" if m.get("train_steps") else "")
+            for t in tasks
+            for model, m in (t.get("models") or {}).items()
+        }
+    )
+    return text + (f"; {', '.join(own)}" if own else "")
 
 
 def _pct(x: pd.Series, binary: bool = False) -> str:
