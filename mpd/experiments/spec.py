@@ -450,13 +450,11 @@ def _resolve_tasks(spec: SpecFile, path) -> tuple[SpecFile, dict[str, Path]]:
             )
         if ts.contexts not in ("held-out", "sampled"):
             raise ConfigError(path, f"tasks.{key}.contexts", f"{ts.contexts!r} is not one of: 'held-out', 'sampled'")
+        profiles = load_task(files[name]).spec.training if ts.models else {}
         for model, m in ts.models.items():
-            if m.profile is not None:
-                task = load_task(files[name])
-                if m.profile not in task.spec.training:
-                    have = ", ".join(task.spec.training)
-                    why = f"{m.profile!r} is not a training profile of {name} (it has: {have})"
-                    raise ConfigError(path, f"tasks.{key}.models.{model}.profile", why)
+            if m.profile is not None and m.profile not in profiles:
+                why = f"{m.profile!r} is not a training profile of {name} (it has: {', '.join(profiles)})"
+                raise ConfigError(path, f"tasks.{key}.models.{model}.profile", why)
         if ts.turn_contexts and ts.contexts != "held-out":
             why = "turns held-out contexts only (contexts = 'held-out')"
             raise ConfigError(path, f"tasks.{key}.turn_contexts", why)
