@@ -626,6 +626,7 @@ def test_constant_budget_started_from_a_longer_runs_checkpoint_equals_it_trained
     )
     at, source = read_checkpoint(path), read_checkpoint(ckpt)
     assert at["started_from"]["step"] == 20 and at["history"][-1]["step"] == 20
+    assert json.loads((path.parent / "meta.json").read_text())["steps_per_s"] is None  # no step, no throughput
     assert all(torch.equal(at["ema_weights"][k], source["ema_weights"][k]) for k in source["ema_weights"])
     # what does not qualify is named: the budget passed, another learning rate, the cosine schedule
     record = {k: started[k] for k in train_module.SAME_TRAINING_FIELDS} | {"training_spec": started["training_spec"]}

@@ -885,7 +885,8 @@ def train_model(
         state, elapsed,
         n_train=len(train), n_val=len(val), n_parameters=sum(p.numel() for p in state.net.parameters()),
         device=str(device), cpu=cpu_model(), **arithmetic.record(), source="trained", steps=state.step,
-        steps_per_s=(state.step - first_step) / elapsed if elapsed > 0 else None,
+        # this call's throughput; none for a call that takes no step (a budget that ends at its checkpoint)
+        steps_per_s=(state.step - first_step) / elapsed if elapsed > 0 and state.step > first_step else None,
         final_train_loss=history[-1]["train_loss"] if history else None,
         final_val_loss=history[-1]["val_loss"] if history else None,
     )  # fmt: skip
