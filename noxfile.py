@@ -11,7 +11,7 @@ re-installed only when ``pyproject.toml`` changes: a second ``nox -s demo`` star
     nox -s benchmarks             pytest-benchmark suites, JSON under .benchmarks/
     nox -s gpu                    the prepared GPU check on a CUDA machine (benchmarks/gpu_check.py): JSON summary
     nox -s gpu_wheels             the wheels the offline GPU machine lacks, for its Python 3.12, into .whl/
-    nox -s wheels                 the mpd wheel and the mpd-priors wheel (the shipped priors) into dist/
+    nox -s wheels                 the mpd wheel and the two wheels of the shipped priors into dist/
 """
 
 from __future__ import annotations
@@ -177,12 +177,13 @@ def gpu_wheels(session: nox.Session) -> None:
 
 @nox.session(venv_backend="none")
 def wheels(session: nox.Session) -> None:
-    """The mpd wheel (small: code, task files, specs, dataset definitions) and the companion mpd-priors wheel (the
-    shipped priors, packaging/mpd-priors) into dist/; install both by name: pip install --find-links dist mpd
-    mpd-priors."""
+    """The mpd wheel (small: code, task files, specs, dataset definitions) and the companion wheels of the shipped
+    priors (mpd-priors: the point-mass and planar-arm tasks', packaging/mpd-priors; mpd-priors-panda: the Panda
+    tasks', packaging/mpd-priors-panda) into dist/; install them by name:
+    pip install --find-links dist "mpd[priors]"."""
     b = _venv(session)
     out = ROOT / "dist"
-    for src in (ROOT, ROOT / "packaging" / "mpd-priors"):
+    for src in (ROOT, ROOT / "packaging" / "mpd-priors", ROOT / "packaging" / "mpd-priors-panda"):
         session.run(str(b / "python"), "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-w",
                     str(out), external=True)  # fmt: skip
         shutil.rmtree(src / "build", ignore_errors=True)
