@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from tiny import write_spec_file
 
 from mpd.experiments.results import RowStore, read_results
 from mpd.experiments.runner import Runner
@@ -56,27 +57,28 @@ def work(tmp_path_factory):
             os.environ[k] = v
 
 
-def write_spec(root: Path, name: str, body: str = "", dataset: str = "tiny0", n_contexts: int = 4) -> Path:
-    p = root / f"{name}.toml"
-    p.write_text(
-        textwrap.dedent(f"""
-        name = "{name}"
-        n_contexts = {n_contexts}
-        n_samples = 16
-        seeds = [0]
-        record_contexts = 0
-        [axes]
-        task = ["{TASK}"]
-        method = ["gp-cost"]
-        extra_objects = [false, true]
-        """)
-        + textwrap.dedent(body)
-        + textwrap.dedent(f"""
-        [tasks."{TASK}"]
-        dataset = "{root / dataset}.toml"
-        """)
+def write_spec(
+    root: Path,
+    name: str,
+    body: str = "",
+    dataset: str = "tiny0",
+    n_contexts: int = 4,
+    axes: dict | None = None,
+) -> Path:
+    """A spec of gp-cost in both scenes on the tiny dataset (``axes``: other axes than method and scene; ``body``:
+    TOML text after them)."""
+    axes = {"method": ["gp-cost"], "extra_objects": [False, True]} if axes is None else axes
+    return write_spec_file(
+        root / f"{name}.toml",
+        axes={"task": [TASK], **axes},
+        after_axes=body,
+        tasks={TASK: {"dataset": f"{root / dataset}.toml"}},
+        name=name,
+        n_contexts=n_contexts,
+        n_samples=16,
+        seeds=[0],
+        record_contexts=0,
     )
-    return p
 
 
 # ---------------------------------------------------------------------------------------------------- specs
@@ -139,17 +141,17 @@ def test_matrix_expansion_exclude_only_and_collapse(tmp_path):
         tmp_path,
         "m",
         """
-        method = ["gp-cost", "mpd"]
-        sampler = ["ddim", "ddpm"]
-        rotation_deg = [0, 30]
         [[exclude]]
         method = "mpd"
         rotation_deg = 30
         """,
+        axes={
+            "method": ["gp-cost", "mpd"],
+            "extra_objects": [False, True],
+            "sampler": ["ddim", "ddpm"],
+            "rotation_deg": [0, 30],
+        },
     )
-    # (the [axes] table is re-opened by the body: rewrite it as one table)
-    text = p.read_text().replace('method = ["gp-cost"]\n', "", 1)
-    p.write_text(text)
     spec = load_spec(p)
     cells = spec.cells()
     # gp-cost: sampler collapsed -> 2 scenes x 2 rotations; mpd: 2 samplers x 2 scenes x rotation 0
@@ -426,16 +428,15 @@ def test_training_axes_train_one_model_per_value_and_draw_learning_curves(work):
     p = write_spec(
         work,
         "curves",
-        """
-        method = ["gp-cost", "dprior"]
-        "training.steps" = [20, 40]
-        "training.lr_schedule" = ["wsd"]
-        "training.precision" = ["bf16"]
-        "training.loss_weighting" = ["uniform", "min_snr"]
-        "model.unet_dim" = [8, 16]
-        """,
+        axes={
+            "method": ["gp-cost", "dprior"],
+            "training.steps": [20, 40],
+            "training.lr_schedule": ["wsd"],
+            "training.precision": ["bf16"],
+            "training.loss_weighting": ["uniform", "min_snr"],
+            "model.unet_dim": [8, 16],
+        },
     )
-    p.write_text(p.read_text().replace('method = ["gp-cost"]\n', "", 1).replace("extra_objects = [false, true]", ""))
     spec = load_spec(p)
     cells = spec.cells()
     assert len([c for c in cells if c.p["method"] == "gp-cost"]) == 1  # the training axes collapse without a model
@@ -485,14 +486,9 @@ def test_spec_runs_compile_the_network_by_default_before_the_first_timed_plan(wo
     p = write_spec(
         work,
         "fast",
-        """
-        method = ["gp-cost", "dprior"]
-        "training.steps" = [20]
-        "model.unet_dim" = [8]
-        """,
         n_contexts=3,
+        axes={"method": ["gp-cost", "dprior"], "training.steps": [20], "model.unet_dim": [8]},
     )
-    p.write_text(p.read_text().replace('method = ["gp-cost"]\n', "", 1).replace("extra_objects = [false, true]", ""))
     df = _run(p, work / "runs" / "fast")
     dp, gp = df[df["method"] == "dprior"], df[df["method"] == "gp-cost"]
     assert dp["info_network_compiled"].eq(True).all()
@@ -598,19 +594,19 @@ def test_a_model_of_its_own_profile_trains_beside_the_task_profile_models(tmp_pa
     from mpd.experiments.spec import ModelProfile, TaskSettings, scale_spec
     from mpd.tasks import load_task
 
-    p = tmp_path / "own.toml"
-    p.write_text(
-        textwrap.dedent(f"""
-        name = "own"
-        [axes]
-        task = ["{TASK}"]
-        method = ["dprior", "cvae"]
-        parametrization = ["bspline", "waypoints"]
-        [tasks."{TASK}"]
-        dataset = "{TASK}-paper"
-        models."diffusion-bspline" = {{ profile = "paper", train_steps = 55000 }}
-        models.diffusion = {{ train_steps = 7000 }}
-        """)
+    p = write_spec_file(
+        tmp_path / "own.toml",
+        axes={"task": [TASK], "method": ["dprior", "cvae"], "parametrization": ["bspline", "waypoints"]},
+        tasks={
+            TASK: {
+                "dataset": f"{TASK}-paper",
+                "models": {
+                    "diffusion-bspline": {"profile": "paper", "train_steps": 55000},
+                    "diffusion": {"train_steps": 7000},
+                },
+            }
+        },
+        name="own",
     )
     spec = load_spec(p)
     ts, task = spec.data.tasks[TASK], load_task(TASK)
@@ -655,23 +651,15 @@ def test_shipped_priors_and_digest_evaluate_without_generating_the_dataset(work,
 
     # a definition of its own, with the lock next to it that `mpd data generate` writes (and a repo commits)
     (tmp_path / "dg.toml").write_text((work / "tiny0.toml").read_text().replace('name = "tiny0"', 'name = "dg"'))
-    spec = tmp_path / "dg-eval.toml"
-    spec.write_text(
-        textwrap.dedent(f"""
-        name = "dg-eval"
-        n_contexts = 4
-        n_samples = 16
-        seeds = [0]
-        record_contexts = 0
-        [axes]
-        task = ["{TASK}"]
-        method = ["gp-cost", "dprior"]
-        extra_objects = [false, true]
-        [tasks."{TASK}"]
-        dataset = "{tmp_path / "dg.toml"}"
-        profile = "cpu"
-        train_steps = 20
-        """)
+    spec = write_spec_file(
+        tmp_path / "dg-eval.toml",
+        axes={"task": [TASK], "method": ["gp-cost", "dprior"], "extra_objects": [False, True]},
+        tasks={TASK: {"dataset": f"{tmp_path / 'dg.toml'}", "profile": "cpu", "train_steps": 20}},
+        name="dg-eval",
+        n_contexts=4,
+        n_samples=16,
+        seeds=[0],
+        record_contexts=0,
     )
     monkeypatch.setenv("MPD_CACHE", str(tmp_path / "a"))
     monkeypatch.setenv("MPD_PRIORS", "none")

@@ -9,10 +9,10 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
+from tiny import write_spec_file
 
 from mpd.experiments.spec import load_spec
 from mpd.planners import PlannerSettings, planner_settings
@@ -118,19 +118,8 @@ def test_mpd_plan_rejects_a_setting_in_one_line_before_loading_a_model(tmp_path,
 
 
 def _spec(tmp_path: Path, axis_line: str, task: str = TASK) -> Path:
-    p = tmp_path / "s.toml"
-    p.write_text(
-        textwrap.dedent(f"""
-        name = "s"
-        [axes]
-        task = ["{task}"]
-        method = ["mpd"]
-        {axis_line}
-        [tasks."{task}"]
-        dataset = "x"
-        """)
-    )
-    return p
+    axes = {"task": [task], "method": ["mpd"]}
+    return write_spec_file(tmp_path / "s.toml", axes, {task: {"dataset": "x"}}, after_axes=axis_line, name="s")
 
 
 @pytest.mark.parametrize(
