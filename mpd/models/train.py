@@ -209,6 +209,14 @@ def _to_device(
     return _Data(x, ctx)
 
 
+def _training_data(
+    arrays: TrainingArrays, ts: TrainingSpec, device: torch.device
+) -> tuple[_Data, Normalizer, dict[str, Normalizer]]:
+    """The training rows on ``device``, normalized, and the normalizers fitted to the data (every rank's alike)."""
+    x_norm, ctx_norms = fit_normalizers(arrays)
+    return _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device), x_norm, ctx_norms
+
+
 @torch.no_grad()
 def training_loss_kwargs(kind: str, ts: TrainingSpec, device: torch.device) -> dict[str, Any]:
     """The keywords of ``net.loss`` a training of ``ts`` passes (the diffusion loss's options; none for the CVAE)."""
@@ -809,8 +817,7 @@ def train_model(
         return claim
     identity = claim.identity
 
-    x_norm, ctx_norms = fit_normalizers(arrays)
-    train = _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device)
+    train, x_norm, ctx_norms = _training_data(arrays, ts, device)
     val = _to_device(arrays, arrays.indices(SPLIT_VAL)[:VAL_MAX_SAMPLES], x_norm, ctx_norms, device)
     record = _base_record(arrays, kind, identity, model_spec, ts, seed, x_norm, ctx_norms)
     # a continued training (init_from) has no trunk: its stable phase is not the seed's
@@ -920,8 +927,7 @@ def follow(
     training state, ``end``: its last step): the same data and network, this rank's slice of each batch; no files,
     no validation (rank 0's)."""  # fmt: skip
     device = torch.device("cpu")
-    x_norm, ctx_norms = fit_normalizers(arrays)
-    train = _to_device(arrays, training_indices(arrays, ts), x_norm, ctx_norms, device)
+    train, _, _ = _training_data(arrays, ts, device)
     ours = TrainingState.fresh(kind, arrays, model_spec, ts, seed, device)
     ours.load(dp.read_state(state), device)
     state = ours
