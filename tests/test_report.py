@@ -12,7 +12,7 @@ import pytest
 
 from mpd.viz import report_figures as rf
 from mpd.viz.report import build_report
-from mpd.viz.report_data import EXTRA, TRAIN, main_slice, prepare
+from mpd.viz.report_data import EXTRA, TRAIN, main_slice, method_label, prepare
 from mpd.viz.report_tables import paper_comparison, paper_numbers, paper_table
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -373,3 +373,40 @@ def test_report_writes_pdf_only_on_demand(tmp_path):
     assert "[PDF]" not in index.read_text()
     build_report(run, recordings=False, formats=("png", "pdf"), dpi=40, reference=None)
     assert {p.stem for p in figures.glob("*.pdf")} == {p.stem for p in figures.glob("*.png")}
+
+
+def test_authors_grid_table_sums_the_rows_it_shows():
+    """The authors'-grid section of summary.md, on a committed run: each row's two fractions valid differ by the
+    flips it records (an identity of the recorded columns), and the table's cell values are the means, the paired
+    mean difference and the sums of those rows, computed here by hand; a run without the columns says so."""
+    from mpd.viz.report_stats import authors_grid_table
+
+    raw = pd.read_parquet(ROOT / "reports" / "eval-simple-authors" / "results.parquet")
+    n = raw["n_samples"].astype(float)
+    flips = (raw["n_flips_valid_to_invalid"] - raw["n_flips_invalid_to_valid"]) / n
+    np.testing.assert_allclose(raw["fraction_valid"] - raw["fraction_valid_authors_grid"], flips, atol=1e-9)
+
+    d = prepare(raw)
+    lines = authors_grid_table(d).splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    rows = {
+        (r[0], r[1], r[2], r[3]): dict(zip(header, r))
+        for r in ([c.strip() for c in line.strip("|").split("|")] for line in lines[2:])
+    }
+    assert len(rows) == d.groupby(["task", "scene", "method", "parametrization"]).ngroups
+    for (method, extra), g in d.groupby(["method", "extra_objects"]):
+        g = g[g.parametrization == "bspline"]
+        row = rows[(SIMPLE, EXTRA if extra else TRAIN, method_label(method), "bspline")]
+        diff = 100 * (g["fraction_valid_authors_grid"] - g["fraction_valid"])
+        assert row["contexts"] == str(len(g)) and row["trajectories"] == str(int(g["n_samples"].sum()))
+        assert row["fraction valid, mpd [%]"] == f"{100 * g['fraction_valid'].mean():.1f}"
+        assert row["authors' grid [%]"] == f"{100 * g['fraction_valid_authors_grid'].mean():.1f}"
+        assert row["authors' − mpd [pp]"].strip("*").startswith(f"{diff.mean():+.1f} [")
+        assert row["valid → invalid"] == str(int(g["n_flips_valid_to_invalid"].sum()))
+        assert row["invalid → valid"] == str(int(g["n_flips_invalid_to_valid"].sum()))
+
+    older = d.drop(columns=["fraction_valid_authors_grid"])
+    assert "predate" in authors_grid_table(older)
+    part = d.copy()
+    part.loc[part.index[:5], "fraction_valid_authors_grid"] = np.nan
+    assert authors_grid_table(part).endswith("5 rows predate the check and are left out.")

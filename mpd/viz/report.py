@@ -33,7 +33,9 @@ from mpd.experiments.results import read_results
 from mpd.viz.report_data import EXTRA, TRAIN, method_label, method_order, prepare, short_task, task_order
 from mpd.viz.report_figures import FIGURES, add_caption, ee_goal
 from mpd.viz.report_stats import (
+    AUTHORS_GRID_NOTE,
     PAIRED_NOTE,
+    authors_grid_table,
     contexts_summary,
     contexts_table,
     default_reference,
@@ -414,7 +416,8 @@ def build_report(
     _write(
         out / "summary.md",
         f"# Summary: {info['run_id']}\n\n{SUMMARY_NOTE}\n\n{summary}\n\n## Interquartile mean\n\n"
-        f"{IQM_NOTE}\n\n{iqm_table(d)}\n\n## How many contexts\n\n{contexts}\n\n{contexts_table(d)}\n",
+        f"{IQM_NOTE}\n\n{iqm_table(d)}\n\n## How many contexts\n\n{contexts}\n\n{contexts_table(d)}\n\n"
+        f"## Validity by the authors' grid check\n\n{AUTHORS_GRID_NOTE}\n\n{authors_grid_table(d)}\n",
     )
     _write(out / "paired.md", f"# MPD against each baseline: {info['run_id']}\n\n{PAIRED_NOTE}\n\n{paired}\n")
     _write(out / "reproducibility.md", repro_page)
@@ -441,6 +444,7 @@ def build_report(
         "## Tables",
         "",
         "- [Summary: mean [95 % interval] over contexts, interquartile means, contexts needed](summary.md)",
+        "- [Validity by the authors' grid check](summary.md#validity-by-the-authors-grid-check)",
         "- [MPD against each baseline on the same contexts](paired.md)",
         "- [Reproducibility against a reference run](reproducibility.md)",
         "- [The paper's numbers beside ours](paper.md)",

@@ -115,6 +115,58 @@ PAIRED_NOTE = (
 )
 
 
+# ---------------------------------------------------------------------------- the authors' grid check
+GRID_COLUMNS = ("fraction_valid_authors_grid", "n_flips_valid_to_invalid", "n_flips_invalid_to_valid")
+
+
+def authors_grid_table(d: pd.DataFrame) -> str:
+    """Per cell: fraction valid by mpd's checker (the exact SDF) and by the authors' (their SDF grid with its
+    off-by-one node, :class:`mpd.envs.grid.AuthorsGridSDF`), their paired difference over the contexts (authors'
+    − mpd's, pp, 95 % bootstrap) and the verdicts it flips, summed over the cell's trajectories. Rows without
+    the columns (runs before the check was recorded) are left out, and said so."""
+    have = all(c in d.columns for c in GRID_COLUMNS)
+    rows_with = d[d[GRID_COLUMNS[0]].notna()] if have else d.iloc[:0]
+    if rows_with.empty:
+        return "This run's rows predate the authors'-grid check (`fraction_valid_authors_grid`): nothing to show."
+    extra = _varying(d)
+    header = ["task", "scene", "method", *extra, "contexts", "trajectories", "fraction valid, mpd [%]"]
+    header += ["authors' grid [%]", "authors' − mpd [pp]", "valid → invalid", "invalid → valid"]
+    table = []
+    for k, g in _groups(rows_with, extra):
+        ours = pd.to_numeric(g["fraction_valid"], errors="coerce").to_numpy()
+        theirs = pd.to_numeric(g["fraction_valid_authors_grid"], errors="coerce").to_numpy()
+        diff = stats.paired(theirs, ours).difference
+        n = int(pd.to_numeric(g["n_samples"], errors="coerce").sum()) if "n_samples" in g else None
+        table.append(
+            [
+                k["task"],
+                k["scene"],
+                method_label(k["method"]),
+                *[_fmt_axis(k[c]) for c in extra],
+                str(len(g)),
+                "–" if n is None else str(n),
+                f"{100 * np.nanmean(ours):.1f}",
+                f"{100 * np.nanmean(theirs):.1f}",
+                fmt_estimate(scaled(diff, 100.0), "{:+.1f}", True),
+                str(int(g["n_flips_valid_to_invalid"].sum())),
+                str(int(g["n_flips_invalid_to_valid"].sum())),
+            ]
+        )
+    note = ""
+    if len(rows_with) < len(d):
+        note = f"\n\n{len(d) - len(rows_with)} rows predate the check and are left out."
+    return markdown_table(header, table, ["l"] * (3 + len(extra)) + ["r"] * 7) + note
+
+
+AUTHORS_GRID_NOTE = (
+    "mpd counts a trajectory valid by the exact signed distance of every robot sphere to every obstacle (margin 0). "
+    "The authors' code reads an SDF grid at a node one cell off the nearest one; the row records what their check "
+    "would say of the same trajectories. The two disagree near obstacles only, so the methods whose samples end "
+    "close to obstacles (those guided by the collision cost) flip most. The paper's fraction-valid numbers were "
+    'measured with the authors\' check (docs/PAPER_VS_CODE.md, "validity ground truth").'
+)
+
+
 # -------------------------------------------------------------------------------------- number of contexts
 def contexts_rows(d: pd.DataFrame) -> list[dict]:
     """Per cell: the half-width of the 95 % interval of fraction valid at this run's contexts, the per-context
