@@ -252,6 +252,22 @@ def test_paper_table_markdown(prepared):
     assert "“For example, MPD increases the mean validity fraction of Dprior from 18.4 to 73.5%" in md
 
 
+def test_paper_table_puts_the_authors_check_beside_a_fraction_valid(prepared):
+    """Where the rows record the authors' check, a fraction-valid number of the paper gets our mean by that check
+    beside ours (its mean over the same contexts, by hand); the other numbers a dash; without it, no column."""
+    assert "authors' check" not in paper_table(prepared).split("\n\n")[1]
+    d = prepared.copy()
+    d["fraction_valid_authors_grid"] = (d["fraction_valid"] - 0.01 * (d["context_index"] % 3)).clip(lower=0)
+    lines = next(b for b in paper_table(d).split("\n\n") if b.startswith("| task")).splitlines()  # the first table
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    col = header.index("ours, authors' check")
+    rows = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]
+    cell = d[(d.task == WAREHOUSE) & (d.method == "mpd") & d.extra_objects & (d.rotation_deg == 0)]
+    valid = [r for r in rows if r[0] == WAREHOUSE and r[2] == "MPD" and r[3] == "fraction_valid"]
+    assert len(valid) == 1 and valid[0][col].startswith(f"{100 * cell['fraction_valid_authors_grid'].mean():.2f} [")
+    assert all(r[col] == "–" for r in rows if r[3] != "fraction_valid")
+
+
 def test_report_builds_and_is_deterministic(tmp_path):
     run = make_run(tmp_path, n_ctx=3, small=True)
     fast = {"formats": ("png",), "dpi": 60}  # what is checked here is the Markdown; figures: the test above

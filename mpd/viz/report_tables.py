@@ -210,6 +210,7 @@ def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
                 "ours_std": float(x.std(ddof=1)) if len(x) > 1 else float("nan"),
                 "ours_lo": ci.lo,
                 "ours_hi": ci.hi,
+                "authors_check": _authors_check(g, num),
                 "contexts": int(len(x)),
                 "n_samples": int(g["n_samples"].iloc[0]) if "n_samples" in g.columns else None,
                 "ref": sentences.index(num["sentence"]) + 1,
@@ -217,6 +218,19 @@ def paper_comparison(d: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
             }
         )
     return pd.DataFrame(rows), sentences
+
+
+# a metric whose value depends on the validity check: the results column of the same metric by the authors' check
+AUTHORS_CHECK = {"fraction_valid": "fraction_valid_authors_grid"}
+
+
+def _authors_check(g: pd.DataFrame, num: dict):
+    """The mean [95 % interval] of the number's metric by the authors' validity check (their SDF grid lookup), for
+    the metrics that depend on it and rows that record it; None otherwise."""
+    col = AUTHORS_CHECK.get(num["metric"])
+    if col is None or col not in g.columns or g[col].notna().sum() == 0:
+        return None
+    return interval(g[col].astype(float), float(num.get("scale", 1.0)))
 
 
 def _num(v: float, like: str) -> str:
@@ -231,14 +245,19 @@ def paper_table(d: pd.DataFrame) -> str:
     total = len(paper_numbers())
     if t.empty:
         return f"None of the {total} numbers stated in the paper's text has a matching cell in this run.\n"
-    header = ["task", "scene", "method", "metric", "paper", "ours", "contexts", "B", "source"]
+    checked = t["authors_check"].notna().any()
+    header = ["task", "scene", "method", "metric", "paper", "ours", *(["ours, authors' check"] if checked else [])]
+    header += ["contexts", "B", "source"]
     rows = []
     for _, r in t.iterrows():
         unit = r["unit"] if r["unit"] in ("%", "°", "") else f" {r['unit']}"
-        ours = _num(r["ours"], r["paper_text"]) + (
-            ""
-            if np.isnan(r["ours_lo"])
-            else f" [{_num(r['ours_lo'], r['paper_text'])}, {_num(r['ours_hi'], r['paper_text'])}]"
+        like = r["paper_text"]
+        ours = _num(r["ours"], like) + (
+            "" if np.isnan(r["ours_lo"]) else f" [{_num(r['ours_lo'], like)}, {_num(r['ours_hi'], like)}]"
+        )
+        a = r["authors_check"]
+        theirs = (
+            "–" if not hasattr(a, "lo") else f"{_num(a.value, like)} [{_num(a.lo, like)}, {_num(a.hi, like)}]{unit}"
         )
         rows.append(
             [
@@ -248,13 +267,20 @@ def paper_table(d: pd.DataFrame) -> str:
                 r["metric"],
                 f"{r['paper_text']}{unit}",
                 f"{ours}{unit}",
+                *([theirs] if checked else []),
                 str(r["contexts"]),
                 "–" if r["n_samples"] is None else str(r["n_samples"]),
                 f"[{r['ref']}]" + (f" ({r['note']})" if r["note"] else ""),
             ]
         )
-    out = ["Ours: mean [95 % interval] over contexts (bootstrap; Wilson's interval for success).", ""]
-    out += [markdown_table(header, rows, ["l", "l", "l", "l", "r", "r", "r", "r", "l"]), ""]
+    out = ["Ours: mean [95 % interval] over contexts (bootstrap; Wilson's interval for success)."]
+    if checked:
+        out[0] += (
+            " Ours, authors' check: the same trajectories counted valid by the authors' SDF grid lookup, the check "
+            "the paper's numbers were measured with (summary.md, “Validity by the authors' grid check”)."
+        )
+    align = ["l", "l", "l", "l", "r", "r", *(["r"] if checked else []), "r", "r", "l"]
+    out += ["", markdown_table(header, rows, align), ""]
     out.append(f"{len(t)} of the {total} numbers stated in the paper's text have a matching cell in this run.")
     out.append("")
     out += [f"[{i}] “{s}”  " for i, s in enumerate(sentences, 1)]
