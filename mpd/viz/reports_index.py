@@ -21,7 +21,7 @@ from mpd.viz.report_data import EXTRA, TRAIN, interval, main_slice, method_label
 from mpd.viz.report_tables import markdown_table
 
 RECIPE_STUDIES = ("recipe-study-", "priors-cpu", "guidance-sweep-", "guidance-form-")
-PROBES = ("compile-2d", "precision-2d", "quick")
+PROBES = ("authors-check-panda", "compile-2d", "precision-2d", "quick")
 GROUPS = {
     "paper": (
         "The paper's results",
