@@ -39,6 +39,7 @@ if XDIST_WORKER:
 RAY_FILES = {"test_executor.py", "test_experiments.py", "test_ray_cluster.py"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook, which reads the groups into the node ids
 def pytest_collection_modifyitems(config, items):
     """Each test file is one xdist group (its module fixtures built once, on one worker); the Ray files are one."""
     if not config.pluginmanager.hasplugin("xdist"):
@@ -46,6 +47,22 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         name = item.path.name
         item.add_marker(pytest.mark.xdist_group("ray" if name in RAY_FILES else name))
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids):
+    """Under ``--dist loadgroup``, stop if the groups did not reach the node ids a worker collected: pytest 9.2 keeps
+    node ids where pytest-xdist 3.8 no longer writes the group (pytest-dev/pytest-xdist#1386), and the files were then
+    spread test by test over both workers (module fixtures built twice, Ray files at once) without a word."""
+    if node.config.getvalue("dist") == "loadgroup" and ids and not any("@" in i for i in ids):
+        import importlib.metadata as md
+
+        pytest.exit(
+            f"--dist loadgroup did not group the tests by file (pytest {pytest.__version__}, pytest-xdist "
+            f"{md.version('pytest-xdist')}; pytest-dev/pytest-xdist#1386): install pytest<9.2 (pip install -e "
+            "'.[dev]') or run with -n 0",
+            returncode=4,
+        )
 
 
 @pytest.fixture(scope="module")
