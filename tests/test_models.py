@@ -641,6 +641,40 @@ def test_constant_budget_started_from_a_longer_runs_checkpoint_equals_it_trained
         train_module.start_state(ckpt, record, tiny_training(steps=30, lr_schedule="cosine"), torch.device("cpu"))
 
 
+def test_a_wsd_budget_started_from_a_constant_runs_checkpoint_equals_it_trained_alone(tmp_path):
+    """mpd train --from across schedules: a constant run is a wsd run's stable phase, step for step, so a 40-step wsd
+    budget (stable to step 30, then a decay to another floor than the constant run records) started from step 20 of
+    a 60-step constant run ends bit-identical to it trained from step 0. What does not qualify is named: a step past
+    the wsd run's stable phase, another warm-up, a constant budget from a state in a wsd run's decay."""
+    arrays = toy_arrays(n_val=4)
+    const = tiny_training(steps=60)
+    wsd = tiny_training(steps=40, lr_schedule="wsd", decay_fraction=0.25, lr_min_ratio=0.05)
+    last = train_model(arrays, "diffusion", TINY, const, seed=3, progress=False, cache=tmp_path / "a", stop_after=20)
+    ckpt = shutil.copy(last, tmp_path / "const-20.pt")
+    started = read_checkpoint(
+        train_model(arrays, "diffusion", TINY, wsd, seed=3, progress=False, cache=tmp_path / "b", start_from=ckpt)
+    )
+    alone = read_checkpoint(train_model(arrays, "diffusion", TINY, wsd, seed=3, progress=False, cache=tmp_path / "c"))
+    assert started["identity"] == alone["identity"] and started["started_from"]["step"] == 20
+    for key in ("weights", "ema_weights"):
+        assert all(torch.equal(alone[key][k], started[key][k]) for k in alone[key])
+    assert [h["train_loss"] for h in alone["history"]] == [h["train_loss"] for h in started["history"]]
+    record = {k: started[k] for k in train_module.SAME_TRAINING_FIELDS} | {"training_spec": started["training_spec"]}
+    at35 = shutil.copy(
+        train_model(arrays, "diffusion", TINY, const, seed=3, progress=False, cache=tmp_path / "e", stop_after=35),
+        tmp_path / "const-35.pt",
+    )
+    with pytest.raises(ConfigError, match=r"step: is 35, past this training's 40 steps \(stable phase to 30\)"):
+        train_module.start_state(at35, record, wsd, torch.device("cpu"))
+    warm = record | {"training_spec": {**record["training_spec"], "warmup_steps": 4}}
+    with pytest.raises(ConfigError, match="differs in more than the budget: warmup_steps = 0"):
+        train_module.start_state(ckpt, warm, dataclasses.replace(wsd, warmup_steps=4), torch.device("cpu"))
+    in_decay = train_model(arrays, "diffusion", TINY, wsd, seed=3, progress=False, cache=tmp_path / "d", stop_after=35)
+    const_record = record | {"training_spec": read_checkpoint(ckpt)["training_spec"]}
+    with pytest.raises(ConfigError, match="is 35, in its own run's decay"):
+        train_module.start_state(in_decay, const_record, const, torch.device("cpu"))
+
+
 def test_wsd_learning_rate_is_flat_then_decays_to_the_floor():
     from mpd.models.train import learning_rate
 

@@ -511,6 +511,10 @@ SAME_NETWORK_FIELDS = ("kind", "dataset_hash", "parametrization", "parametrizati
 # training-spec fields that do not act on the state: the budget (steps; decay_fraction acts only after the stable
 # phase) and how often the loop validates and saves
 BUDGET_FIELDS = ("steps", "decay_fraction", "val_every", "checkpoint_every")
+# the schedules whose learning rate before a decay is the warm-up then lr, and the fields that act only in the decay:
+# a constant run and a wsd run of the same other fields take the same steps up to the wsd run's decay
+FLAT_SCHEDULES = {"constant", "wsd"}
+DECAY_FIELDS = ("lr_schedule", "lr_min_ratio")
 
 
 def _stable_end_of(training_spec: dict[str, Any]) -> int:
@@ -526,7 +530,8 @@ def start_state(path: str | Path, record: dict[str, Any], ts: TrainingSpec, devi
     ``last.pt`` (or a copy of one) of the same task data, network, seed and training spec but for the number of
     steps, at a step this training also passes through with the same learning rates. Under the ``constant``
     schedule every step qualifies (a budget of N steps is the first N steps of a longer one, bit for bit); under
-    ``wsd`` the steps of both runs' stable phases (as the trunk snapshots, which are made automatically); the
+    ``wsd`` the steps of both runs' stable phases (as the trunk snapshots, which are made automatically), and a
+    constant run's steps up to a wsd run's decay (its stable phase is that run, bit for bit) or the reverse; the
     ``cosine`` schedule's learning rate depends on the budget at every step, so it has no such states. Anything else
     raises :class:`ConfigError` naming the file and the field."""
     state = read_checkpoint(path, map_location=device)
@@ -539,7 +544,10 @@ def start_state(path: str | Path, record: dict[str, Any], ts: TrainingSpec, devi
         if state.get(name) != record.get(name):
             raise ConfigError(path, name, f"is {state.get(name)!r}, this training's is {record.get(name)!r}")
     theirs, ours = dict(state.get("training_spec") or {}), dict(record["training_spec"])
-    differ = sorted(k for k in theirs.keys() | ours.keys() if k not in BUDGET_FIELDS and theirs.get(k) != ours.get(k))
+    ignore = set(BUDGET_FIELDS)
+    if {theirs.get("lr_schedule"), ours.get("lr_schedule")} <= FLAT_SCHEDULES:
+        ignore.update(DECAY_FIELDS)  # a constant run is a wsd run's stable phase, step for step, and vice versa
+    differ = sorted(k for k in theirs.keys() | ours.keys() if k not in ignore and theirs.get(k) != ours.get(k))
     if differ:
         detail = ", ".join(f"{k} = {theirs.get(k)!r} (this training: {ours.get(k)!r})" for k in differ)
         raise ConfigError(path, "training_spec", f"differs in more than the budget: {detail}")
