@@ -645,7 +645,8 @@ def test_a_wsd_budget_started_from_a_constant_runs_checkpoint_equals_it_trained_
     """mpd train --from across schedules: a constant run is a wsd run's stable phase, step for step, so a 40-step wsd
     budget (stable to step 30, then a decay to another floor than the constant run records) started from step 20 of
     a 60-step constant run ends bit-identical to it trained from step 0. What does not qualify is named: a step past
-    the wsd run's stable phase, another warm-up, a constant budget from a state in a wsd run's decay."""
+    the wsd run's stable phase, another warm-up, a constant budget from a state in a wsd run's decay (one from its
+    stable phase equals the constant budget trained alone)."""
     arrays = toy_arrays(n_val=4)
     const = tiny_training(steps=60)
     wsd = tiny_training(steps=40, lr_schedule="wsd", decay_fraction=0.25, lr_min_ratio=0.05)
@@ -669,6 +670,18 @@ def test_a_wsd_budget_started_from_a_constant_runs_checkpoint_equals_it_trained_
     warm = record | {"training_spec": {**record["training_spec"], "warmup_steps": 4}}
     with pytest.raises(ConfigError, match="differs in more than the budget: warmup_steps = 0"):
         train_module.start_state(ckpt, warm, dataclasses.replace(wsd, warmup_steps=4), torch.device("cpu"))
+    # the reverse: a constant budget from a wsd run's stable phase equals it trained alone
+    stable = shutil.copy(
+        train_model(arrays, "diffusion", TINY, wsd, seed=3, progress=False, cache=tmp_path / "f", stop_after=20),
+        tmp_path / "wsd-20.pt",
+    )
+    short = tiny_training(steps=30)
+    back = read_checkpoint(
+        train_model(arrays, "diffusion", TINY, short, seed=3, progress=False, cache=tmp_path / "g", start_from=stable)
+    )
+    plain = read_checkpoint(train_model(arrays, "diffusion", TINY, short, seed=3, progress=False, cache=tmp_path / "h"))
+    assert back["identity"] == plain["identity"] and back["started_from"]["step"] == 20
+    assert all(torch.equal(plain["ema_weights"][k], back["ema_weights"][k]) for k in plain["ema_weights"])
     in_decay = train_model(arrays, "diffusion", TINY, wsd, seed=3, progress=False, cache=tmp_path / "d", stop_after=35)
     const_record = record | {"training_spec": read_checkpoint(ckpt)["training_spec"]}
     with pytest.raises(ConfigError, match="is 35, in its own run's decay"):
