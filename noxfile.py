@@ -58,7 +58,8 @@ def tests(session: nox.Session) -> None:
     session.run(str(b / "python"), "-m", "pytest", *args, external=True)
 
 
-LINT_PATHS = ("mpd", "tests", "benchmarks", "reports", "noxfile.py")  # reports/: the reports' analysis scripts
+# reports/: the reports' analysis scripts
+LINT_PATHS = ("mpd", "tests", "benchmarks", "reports", "noxfile.py", "setup.py")
 
 
 @nox.session(venv_backend="none")

@@ -2,14 +2,17 @@
 definitions with their lock files (``datasets/``) in ``mpd/_bundled/``, so that an installed mpd runs ``mpd run quick``
 outside a checkout (``mpd.paths``). The shipped priors are a companion distribution: ``packaging/mpd-priors``."""
 
-from pathlib import Path
 import shutil
+from pathlib import Path
 
 from setuptools import setup
 from setuptools.command.build_py import build_py
 
 ROOT = Path(__file__).resolve().parent
-BUNDLE = {"specs": (ROOT / "benchmarks" / "specs", ("*.toml",)), "datasets": (ROOT / "datasets", ("*.toml", "*.json", "README.md"))}
+BUNDLE = {
+    "specs": (ROOT / "benchmarks" / "specs", ("*.toml",)),
+    "datasets": (ROOT / "datasets", ("*.toml", "*.json", "README.md")),
+}
 
 
 class BuildPyWithData(build_py):
