@@ -23,11 +23,14 @@ def test_every_report_folder_is_listed_once():
     assert sorted(r.split("]")[0][3:] for r in rows) == folders
 
 
-def test_a_cpu_report_is_superseded_by_its_gpu_priors_twin():
+def test_a_cpu_report_is_superseded_by_its_gpu_priors_twin_else_its_authors_twin():
     names = {"eval-panda-cpu", "eval-panda-gpu-priors", "eval-2d-cpu"}
     assert superseded_by("eval-panda-cpu", names) == "eval-panda-gpu-priors"
     assert superseded_by("eval-2d-cpu", names) is None
     assert superseded_by("eval-panda-gpu-priors", names) is None
+    assert superseded_by("eval-2d-cpu", names | {"eval-2d-authors"}) == "eval-2d-authors"
+    assert superseded_by("eval-2d-cpu", names | {"eval-2d-authors", "eval-2d-gpu-priors"}) == "eval-2d-gpu-priors"
+    assert superseded_by("eval-2d-authors", names | {"eval-2d-authors"}) is None
 
 
 def test_index_of_a_changed_folder_differs(tmp_path):

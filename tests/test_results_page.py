@@ -89,3 +89,29 @@ def test_check_option_fails_on_a_stale_page(tmp_path):
     assert mpd_report_paper(page, "--check") == 0
     page.write_text(page.read_text().replace("| inside |", "| outside (ours higher) |", 1))
     assert mpd_report_paper(page, "--check") == 1
+
+
+def test_a_rows_source_names_the_models_its_report_trained_otherwise(tmp_path):
+    """The "ours from" column names a task's profile and each model the report's spec overrides, with its steps."""
+    import json
+
+    from mpd.viz.results_page import _source
+
+    task = "EnvSimple2D-RobotPointMass2D"
+    spec = {
+        "tasks": {
+            task: {
+                "profile": "cpu",
+                "models": {"diffusion-bspline": {"profile": "paper-decay", "train_steps": 170000}},
+            },
+            "Other": {"profile": "gpu"},
+        }
+    }
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps({"spec": spec}))
+    assert (
+        _source("run", tmp_path, task)
+        == "[run](../reports/run/) (`cpu`; diffusion-bspline `paper-decay` 170,000 steps)"
+    )
+    assert _source("run", tmp_path, "Other") == "[run](../reports/run/) (`gpu`)"
+    assert _source("run", tmp_path, "Absent") == "[run](../reports/run/) (`cpu`)"

@@ -2,7 +2,8 @@
 
 Per report folder: the question it answers (its spec's description), its spec, the training profile of its priors,
 the date its run finished, a headline number from its results table, and the later report that supersedes it (a
-``NAME-cpu`` report is superseded by its ``NAME-gpu-priors`` twin: the same spec with the priors trained on a GPU).
+``NAME-cpu`` report is superseded by its ``NAME-gpu-priors`` twin, the same spec with the priors trained on a GPU, or
+else by its ``NAME-authors`` twin, the same spec with priors of the authors' recipe).
 The paper's results, the superseded reports, the recipe studies and the probes are listed apart. Everything comes
 from each folder's manifest and results table (or, for a benchmark's folder without a run, its README's title), so
 the same folders give the same page.
@@ -49,9 +50,12 @@ def _group(name: str, folders: set[str]) -> str:
 
 
 def superseded_by(name: str, folders: set[str]) -> str | None:
-    """The report that supersedes ``name``: its ``-gpu-priors`` twin when ``name`` ends in ``-cpu``."""
-    twin = name.removesuffix("-cpu") + "-gpu-priors"
-    return twin if name.endswith("-cpu") and twin in folders else None
+    """The report that supersedes ``name`` when it ends in ``-cpu``: its ``-gpu-priors`` twin, else its ``-authors``
+    twin (the same spec with priors of the authors' recipe)."""
+    if not name.endswith("-cpu"):
+        return None
+    twins = (name.removesuffix("-cpu") + suffix for suffix in ("-gpu-priors", "-authors"))
+    return next((t for t in twins if t in folders), None)
 
 
 def _link(folder: Path) -> str:

@@ -20,8 +20,9 @@ from mpd.viz.report_data import EXTRA, TRAIN, main_slice, method_label, prepare,
 from mpd.viz.report_tables import _num, markdown_table, paper_comparison, paper_numbers
 
 # the reports that reproduce the paper's main results, most faithful first: a number or an ordering comes from the
-# first one that has its cell
-PAPER_REPORTS = ("eval-panda-gpu-priors", "eval-2d-cpu", "eval-planar-cpu")
+# first one that has its cell (eval-2d-authors: the 2-D B-spline priors of the authors' recipe; eval-2d-cpu keeps the
+# 2-D rows of the `cpu` priors, and the cells the other lacks)
+PAPER_REPORTS = ("eval-panda-gpu-priors", "eval-2d-authors", "eval-2d-cpu", "eval-planar-cpu")
 HARDWARE = "a time depends on the hardware (the paper: an RTX 3090 GPU; ours: a CPU)"
 
 
@@ -75,14 +76,19 @@ def _reports(root: Path) -> dict[str, pd.DataFrame]:
 
 
 def _priors(root: Path, name: str, task: str) -> str:
-    """The training profile of a report's priors for ``task`` (from its manifest's spec)."""
+    """The training profile of a report's priors for ``task``, and each model it trains otherwise (from its manifest's
+    spec), e.g. "`cpu`; diffusion-bspline `paper-decay` 200,000 steps"."""
     spec = json.loads((root / name / "manifest.json").read_text()).get("spec", {})
     ts = spec.get("tasks", {}).get(task, {})
-    return ts.get("profile", "cpu")
+    text = f"`{ts.get('profile', 'cpu')}`"
+    for model, m in sorted((ts.get("models") or {}).items()):
+        steps = f" {m['train_steps']:,} steps" if m.get("train_steps") else ""
+        text += f"; {model} `{m.get('profile') or ts.get('profile', 'cpu')}`{steps}"
+    return text
 
 
 def _source(name: str, root: Path, task: str) -> str:
-    return f"[{name}](../reports/{name}/) (`{_priors(root, name, task)}`)"
+    return f"[{name}](../reports/{name}/) ({_priors(root, name, task)})"
 
 
 def _kind(verdict: str) -> str:
@@ -174,7 +180,7 @@ def _ordering_tasks(reports: dict[str, pd.DataFrame], o: Ordering) -> list[tuple
 
 
 def orderings_table(reports: dict[str, pd.DataFrame], root: Path) -> tuple[str, dict[str, int]]:
-    rows, counts = [], {}
+    rows, counts = [], {"holds": 0, "reversed": 0, "not resolved": 0}  # a fixed order, whatever comes first
     for o in ORDERINGS:
         scale, unit = DIFF_UNITS[o.metric]
         for task, name in _ordering_tasks(reports, o):
@@ -185,7 +191,7 @@ def orderings_table(reports: dict[str, pd.DataFrame], root: Path) -> tuple[str, 
             e = scaled(p.difference, scale)
             verdict = ordering_verdict(e, o.higher)
             kind = _kind(verdict)
-            counts[kind] = counts.get(kind, 0) + 1
+            counts[kind] += 1
             diff = _fmt_diff(e, unit)
             src = "adaptation" if o.ref is None else _ref(o.ref)
             rows.append(
@@ -278,7 +284,7 @@ def glance(root: Path) -> str:
             p = _paired(reports[name], o, task)
             e = None if p is None else scaled(p.difference, 100.0)
             cells.append("–" if e is None else f"{_fmt_diff(e, 'pp')}: {_kind(ordering_verdict(e, o.higher))}")
-        rows.append([task, *cells, f"`{_priors(root, name, task)}`"])
+        rows.append([task, *cells, _priors(root, name, task)])
     table = markdown_table(["task", "MPD − Dprior+Cost", "Dprior+Cost − Dprior", "priors"], rows, ["l", "r", "r", "l"])
     return "\n".join(
         [
