@@ -15,8 +15,8 @@ A file with a ``task`` column (several tasks' files combined) gives a table per 
 
 from __future__ import annotations
 
+import argparse
 import re
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -105,21 +105,13 @@ def versus(df: pd.DataFrame, a: str, b: str) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    args = sys.argv[1:]
-    csv = None
-    if "--csv" in args:
-        i = args.index("--csv")
-        csv = Path(args[i + 1])
-        del args[i : i + 2]
-    pair = None
-    if "--versus" in args:
-        i = args.index("--versus")
-        pair = args[i + 1 : i + 3]
-        del args[i : i + 3]
-    if not args:
-        sys.exit(__doc__)
-    files = [Path(a) for a in args]
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("files", nargs="+", type=Path, help="<label>-<steps>-<method>[-extra].parquet files, or CSVs")
+    parser.add_argument("--csv", type=Path, help="write the per-context values to this CSV")
+    parser.add_argument("--versus", nargs=2, metavar=("A", "B"), help="paired A - B, each label:steps")
+    args = parser.parse_args(argv)
+    files, csv, pair = args.files, args.csv, args.versus
     df = pd.concat([pd.read_csv(f) for f in files]) if all(f.suffix == ".csv" for f in files) else load(files)
     if csv is not None:
         df.to_csv(csv, index=False, float_format="%.4g")
