@@ -97,6 +97,16 @@ def applies(d: pd.DataFrame, task: str, metric: str) -> bool:
     return not metric.startswith(("ee_", "best_ee_")) or ee_goal(d, task)
 
 
+def trained_models(task_spec: dict) -> list[str]:
+    """A spec task's models trained otherwise than its profile says, e.g. ["diffusion-bspline `paper-decay` 200,000
+    steps"], in name order: how the results page and the reports index name a run's priors."""
+    profile = task_spec.get("profile", "cpu")
+    return [
+        f"{model} `{m.get('profile') or profile}`" + (f" {m['train_steps']:,} steps" if m.get("train_steps") else "")
+        for model, m in sorted((task_spec.get("models") or {}).items())
+    ]
+
+
 def short_task(task: str) -> str:
     """``EnvSpheres3D-RobotPanda`` -> ``Spheres3D / Panda``: short enough for a panel title."""
     env, _, robot = task.partition("-")

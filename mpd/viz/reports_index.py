@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from mpd.viz.report_data import EXTRA, TRAIN, interval, main_slice, method_label, prepare, task_order
+from mpd.viz.report_data import EXTRA, TRAIN, interval, main_slice, method_label, prepare, task_order, trained_models
 from mpd.viz.report_tables import markdown_table
 
 RECIPE_STUDIES = ("recipe-study-", "priors-cpu", "guidance-sweep-", "guidance-form-")
@@ -70,14 +70,7 @@ def _priors(spec: dict) -> str:
     cvae = sorted({t["cvae_profile"] for t in tasks if t.get("cvae_profile")} - set(profiles))
     text = ", ".join(f"`{p}`" for p in profiles)
     text += f" (CVAE {', '.join(f'`{p}`' for p in cvae)})" if cvae else ""
-    own = sorted(
-        {
-            f"{model} `{m.get('profile') or t.get('profile', 'cpu')}`"
-            + (f" {m['train_steps']:,} steps" if m.get("train_steps") else "")
-            for t in tasks
-            for model, m in (t.get("models") or {}).items()
-        }
-    )
+    own = sorted({name for t in tasks for name in trained_models(t)})
     return text + (f"; {', '.join(own)}" if own else "")
 
 

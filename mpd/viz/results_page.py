@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from mpd import stats
-from mpd.viz.report_data import EXTRA, TRAIN, main_slice, method_label, prepare, scaled, task_order
+from mpd.viz.report_data import EXTRA, TRAIN, main_slice, method_label, prepare, scaled, task_order, trained_models
 from mpd.viz.report_tables import _num, markdown_table, paper_comparison, paper_numbers
 
 # the reports that reproduce the paper's main results, most faithful first: a number or an ordering comes from the
@@ -80,11 +80,7 @@ def _priors(root: Path, name: str, task: str) -> str:
     spec), e.g. "`cpu`; diffusion-bspline `paper-decay` 200,000 steps"."""
     spec = json.loads((root / name / "manifest.json").read_text()).get("spec", {})
     ts = spec.get("tasks", {}).get(task, {})
-    text = f"`{ts.get('profile', 'cpu')}`"
-    for model, m in sorted((ts.get("models") or {}).items()):
-        steps = f" {m['train_steps']:,} steps" if m.get("train_steps") else ""
-        text += f"; {model} `{m.get('profile') or ts.get('profile', 'cpu')}`{steps}"
-    return text
+    return "; ".join([f"`{ts.get('profile', 'cpu')}`", *trained_models(ts)])
 
 
 def _source(name: str, root: Path, task: str) -> str:
