@@ -79,12 +79,18 @@ def test_orderings_cite_the_sentence_of_their_methods():
 
 
 def test_check_option_fails_on_a_stale_page(tmp_path):
+    from click.testing import CliRunner
+
+    from mpd.cli.reports import report
+
     def mpd_report_paper(out: Path, *extra: str) -> int:
-        cmd = [sys.executable, "-m", "mpd.cli", "report", "paper", "--no-readme", "--out", str(out), *extra]
-        return subprocess.run(cmd, capture_output=True, text=True).returncode
+        return CliRunner().invoke(report, ["paper", "--no-readme", "--out", str(out), *extra]).exit_code
 
     page = tmp_path / "RESULTS.md"
-    assert mpd_report_paper(page, "--check") == 1  # missing
+    # the command line as a user runs it (one process of its own); then the same command in this one
+    cmd = [sys.executable, "-m", "mpd.cli", "report", "paper", "--no-readme", "--out", str(page), "--check"]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    assert done.returncode == 1 and "differs from what the committed reports give" in done.stderr  # missing
     assert mpd_report_paper(page) == 0 and page.read_text() == RESULTS.read_text()
     assert mpd_report_paper(page, "--check") == 0
     page.write_text(page.read_text().replace("| inside |", "| outside (ours higher) |", 1))
