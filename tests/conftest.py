@@ -81,3 +81,21 @@ def _seed_globals():
     random.seed(0)
     np.random.seed(0)  # noqa: NPY002 - the legacy global state is exactly what is pinned here
     torch.manual_seed(0)
+
+
+@pytest.fixture
+def bench_tool():
+    """A loader of the command-line tools under benchmarks/tools/ (scripts, not a package): ``bench_tool("name")``
+    is the module of ``benchmarks/tools/name.py``."""
+    import importlib.util
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "benchmarks" / "tools"
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

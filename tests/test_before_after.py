@@ -3,20 +3,8 @@ the contexts both runs hold, against the differences computed by hand."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
-
-TOOL = Path(__file__).resolve().parents[1] / "benchmarks" / "tools" / "before_after.py"
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("before_after", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _rows(values: dict[int, float]) -> pd.DataFrame:
@@ -33,12 +21,12 @@ def _rows(values: dict[int, float]) -> pd.DataFrame:
     )
 
 
-def test_paired_column_is_the_mean_difference_over_the_shared_contexts():
+def test_paired_column_is_the_mean_difference_over_the_shared_contexts(bench_tool):
     rng = np.random.default_rng(0)
     before = {i: float(v) for i, v in enumerate(rng.uniform(0, 1, 12))}
     # the after run in another order, missing contexts 0 and 1, with context 12 that the before run lacks
     after = {i: float(v) for i, v in zip(range(12, 1, -1), rng.uniform(0, 1, 11), strict=True)}
-    text = _tool().table(_rows(before), _rows(after), paired=True)
+    text = bench_tool("before_after").table(_rows(before), _rows(after), paired=True)
     row = next(line for line in text.splitlines() if "| Dprior |" in line)
     shared = sorted(set(before) & set(after))
     by_hand = 100 * np.mean([after[i] - before[i] for i in shared])
@@ -47,4 +35,4 @@ def test_paired_column_is_the_mean_difference_over_the_shared_contexts():
     lo, hi = (float(x) for x in cell[cell.index("[") + 1 : cell.index("]")].split(", "))
     assert lo < by_hand < hi
     # without --paired the table has no such column
-    assert "after − before" not in _tool().table(_rows(before), _rows(after))
+    assert "after − before" not in bench_tool("before_after").table(_rows(before), _rows(after))

@@ -3,21 +3,11 @@ the --versus difference against hand computations, and its command line (--help,
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-
-TOOL = Path(__file__).resolve().parents[1] / "benchmarks" / "tools" / "learning_curve.py"
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("learning_curve", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _evaluation(path: Path, valid: np.ndarray) -> None:
@@ -28,7 +18,7 @@ def _evaluation(path: Path, valid: np.ndarray) -> None:
     ).to_parquet(path)
 
 
-def test_the_tables_and_the_paired_difference_match_hand_computations(tmp_path, capsys):
+def test_the_tables_and_the_paired_difference_match_hand_computations(tmp_path, capsys, bench_tool):
     rng = np.random.default_rng(3)
     early = rng.uniform(size=(20, 10)) < 0.2
     late = rng.uniform(size=(20, 10)) < 0.4
@@ -37,7 +27,7 @@ def test_the_tables_and_the_paired_difference_match_hand_computations(tmp_path, 
     _evaluation(tmp_path / "run-2000-dprior.parquet", late)
     _evaluation(tmp_path / "run-2000-mpd-extra.parquet", late)
 
-    tool = _tool()
+    tool = bench_tool("learning_curve")
     df = tool.load(sorted(tmp_path.glob("*.parquet")))
     first = df[(df.steps == 1000)].sort_values("context")
     np.testing.assert_allclose(first.valid, early.mean(axis=1))
@@ -65,15 +55,15 @@ def test_the_tables_and_the_paired_difference_match_hand_computations(tmp_path, 
     assert capsys.readouterr().out == out
 
 
-def test_a_file_named_otherwise_is_refused_by_name(tmp_path):
+def test_a_file_named_otherwise_is_refused_by_name(tmp_path, bench_tool):
     bad = tmp_path / "run-dprior.parquet"
     _evaluation(bad, np.ones((2, 2)))
     with pytest.raises(ValueError, match="run-dprior.parquet"):
-        _tool().load([bad])
+        bench_tool("learning_curve").load([bad])
 
 
-def test_help_exits_cleanly_and_no_file_is_an_error(capsys):
-    tool = _tool()
+def test_help_exits_cleanly_and_no_file_is_an_error(capsys, bench_tool):
+    tool = bench_tool("learning_curve")
     with pytest.raises(SystemExit) as done:
         tool.main(["--help"])
     assert done.value.code == 0 and "--versus" in capsys.readouterr().out
