@@ -389,16 +389,23 @@ def _kill_after_progress(root: Path, argv: list[str], watch: Path, rng, at_most:
 def _kill_at_random_times(root: Path, argv: list[str], pace: float, rng, kills: int, attempts: int) -> int:
     """Run argv until it has been SIGKILLed `kills` times (at most `attempts` runs), each at a random fraction
     (0.1-0.7) of `pace`, its uninterrupted duration on this machine (a run that writes nothing until its end, a 20-step
-    training, starts over each time). Returns the number of kills."""
+    training, starts over each time). A run that finishes before its kill (the machine got quieter than when `pace`
+    was measured) gives its own duration as the new pace, and its model is removed, so that the next run starts
+    over instead of finding it done. Returns the number of kills."""
     done = 0
     for _ in range(attempts):
         if done >= kills:
             break
+        t0 = time.monotonic()
         p = _start(root, argv)
         try:
             p.wait(timeout=rng.uniform(0.1, 0.7) * pace)
         except subprocess.TimeoutExpired:
-            done += _kill(p)
+            if _kill(p):
+                done += 1
+                continue
+        pace = min(pace, time.monotonic() - t0)
+        shutil.rmtree(root / "cache" / "models", ignore_errors=True)
     return done
 
 
