@@ -31,16 +31,16 @@ nox.options.sessions = ["tests"]
 
 def _venv(session: nox.Session, extras: str = "dev,ray,mlflow") -> Path:
     """Create/refresh the shared environment (one set of extras for every session, so that switching sessions never
-    reinstalls); returns its bin directory."""
+    reinstalls); returns its bin directory. `nox -s NAME --install-only` creates it and runs nothing else."""
     bin_dir = VENV / ("Scripts" if sys.platform == "win32" else "bin")
     python = bin_dir / "python"
     stamp = VENV / ".mpd-stamp"
     want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes() + extras.encode()).hexdigest()
     if not python.exists():
-        session.run(sys.executable, "-m", "venv", str(VENV), external=True)
+        session.run_install(sys.executable, "-m", "venv", str(VENV), external=True)
     if not stamp.exists() or stamp.read_text() != want:
-        session.run(str(python), "-m", "pip", "install", "-q", "--upgrade", "pip", external=True)
-        session.run(str(python), "-m", "pip", "install", "-q", "-e", f".[{extras}]", external=True)
+        session.run_install(str(python), "-m", "pip", "install", "-q", "--upgrade", "pip", external=True)
+        session.run_install(str(python), "-m", "pip", "install", "-q", "-e", f".[{extras}]", external=True)
         stamp.write_text(want)
     session.env["PATH"] = f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"
     session.env["VIRTUAL_ENV"] = str(VENV)
