@@ -157,6 +157,11 @@ class MotionPlanner:
         return self._planner.settings
 
     @property
+    def parametrization(self) -> str:
+        """The trajectory's parametrization: ``"bspline"`` or ``"waypoints"``."""
+        return self._planner.param.name
+
+    @property
     def dof(self) -> int:
         return self.task.dof
 
@@ -414,7 +419,7 @@ def load_planner(
     method: str = "mpd",
     *,
     model: str | Path | None = None,
-    parametrization: str = "bspline",
+    parametrization: str | None = None,
     preset: str = "official",
     extra_objects: bool = False,
     rotation_deg: float = 0.0,
@@ -427,11 +432,12 @@ def load_planner(
 
     ``model``: None for the task's default shipped prior (the one trained longest), a model identity or a prefix of
     one (the cache, then the shipped priors), ``"latest"`` (the newest trained here) or a checkpoint path; methods
-    without a model ignore it. ``extra_objects`` / ``rotation_deg``: the task's own scene variants. ``fast``: the
-    compiled network in bf16 where the CPU has it (:data:`FAST_SETTINGS`), on a device torch.compile can build kernels
-    for (a CPU with a C++ compiler); ``fast=False`` (or the environment variable ``MPD_COMPILE=0``) is the eager fp32
-    network. ``settings``: :class:`mpd.planners.PlannerSettings`
-    fields, e.g. ``guide_lr=0.5``."""
+    without a model ignore it. ``parametrization``: ``"bspline"`` or ``"waypoints"``; None takes the named model's
+    own (a checkpoint path or an identity), ``"bspline"`` for the default and latest. ``extra_objects`` /
+    ``rotation_deg``: the task's own scene variants. ``fast``: the compiled network in bf16 where the CPU has it
+    (:data:`FAST_SETTINGS`), on a device torch.compile can build kernels for (a CPU with a C++ compiler);
+    ``fast=False`` (or the environment variable ``MPD_COMPILE=0``) is the eager fp32 network. ``settings``:
+    :class:`mpd.planners.PlannerSettings` fields, e.g. ``guide_lr=0.5``."""
     from mpd.models.find import find_model
     from mpd.planners import get_planner_class, make_planner
     from mpd.planners.validation import check_task_settings
@@ -459,12 +465,16 @@ def load_planner(
     unknown = sorted(set(settings) - known)
     if unknown:
         raise PlanningInputError(unknown[0], f"is not a planner setting (known: {', '.join(sorted(known))})")
+    if parametrization not in (None, "bspline", "waypoints"):
+        raise PlanningInputError("parametrization", f"{parametrization!r} is not bspline or waypoints")
     loaded = None
     if cls.model_kind is not None:
         try:
             loaded = find_model(t.name, cls.model_kind, parametrization, model, device=device)
         except ConfigError as e:
             raise PlanningInputError("model", e.detail) from None
+        parametrization = loaded.parametrization
+    parametrization = parametrization or "bspline"
     try:
         planner = make_planner(
             method,

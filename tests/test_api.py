@@ -40,6 +40,25 @@ def test_the_default_model_is_the_shipped_prior_trained_longest(tmp_path, monkey
         mpd.load_planner("EnvWarehouse-RobotPanda", model="ffff")
 
 
+def test_a_named_model_brings_its_own_parametrization():
+    """A waypoint prior named by its path or its identity plans as waypoints without ``parametrization=``; the
+    default stays the B-spline prior; a parametrization that contradicts the named model, or is no parametrization,
+    fails in one line naming the argument."""
+    from mpd.models.find import shipped_priors
+
+    (wp,) = shipped_priors(TASK, "diffusion", "waypoints")
+    for ref in (wp["path"], wp["identity"][:8]):
+        p = mpd.load_planner(TASK, "dprior", model=ref, fast=False)
+        assert p.parametrization == p.model.parametrization == "waypoints"
+        assert p.model.meta["identity"] == wp["identity"]
+        assert np.asarray(p.plan(START, GOAL, n_samples=4, seed=0).q).shape[0] == 4
+    assert mpd.load_planner(TASK, "dprior", fast=False).parametrization == "bspline"
+    with pytest.raises(mpd.PlanningInputError, match=r"^model: .*checkpoint is for parametrization 'waypoints'"):
+        mpd.load_planner(TASK, "dprior", model=wp["path"], parametrization="bspline")
+    with pytest.raises(mpd.PlanningInputError, match=r"^parametrization: 'spline' is not"):
+        mpd.load_planner(TASK, "dprior", parametrization="spline")
+
+
 def test_plan_shapes_timings_provenance_and_seed(planner):
     a = planner.plan(START, GOAL, n_samples=6, seed=3)
     b = planner.plan(np.array(START), torch.tensor(GOAL), n_samples=6, seed=3)

@@ -187,6 +187,23 @@ def test_plan_cli_writes_outputs(tmp_path):
     assert (out / "trajectories.png").stat().st_size > 0 and (out / "trajectories.npz").exists()
 
 
+def test_plan_cli_takes_the_named_models_parametrization(tmp_path):
+    """`mpd plan --model <a waypoint prior's identity>` plans with waypoints without --parametrization; a
+    contradicting --parametrization fails in one line naming --model."""
+    import json
+
+    from mpd.models.find import shipped_priors
+
+    (wp,) = shipped_priors("EnvSimple2D-RobotPointMass2D", "diffusion", "waypoints")
+    args = ["--task", "EnvSimple2D-RobotPointMass2D", "--planner", "dprior", "--model", wp["identity"][:8]]
+    r = _plan_cli(*args, "--n-samples", "4", "--out", str(tmp_path / "wp"))
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "wp" / "metrics.json").read_text())
+    assert doc["parametrization"] == "waypoints" and wp["identity"] in doc["model"]
+    r = _plan_cli(*args, "--parametrization", "bspline", "--out", str(tmp_path / "b"))
+    assert r.returncode == 2 and "--model: " in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+
+
 def test_endpoint_gp_fit_and_posterior_match_scikit_learn():
     """The authors' GP prior: scikit-learn's GaussianProcessRegressor with 1 * RBF(l >= |qg - qs| / 2), fitted to the
     two end points (an independent implementation: L-BFGS-B with restarts) vs our closed-form fit."""

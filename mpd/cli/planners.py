@@ -76,7 +76,12 @@ def _check_configuration(task, q: np.ndarray, name: str, extra_objects: bool, ro
 )
 @click.option("--preset", type=click.Choice(["official", "paper"]), default="official", show_default=True)
 @click.option("--sampler", type=click.Choice(["ddim", "ddpm"]), default="ddim", show_default=True)
-@click.option("--parametrization", type=click.Choice(["bspline", "waypoints"]), default="bspline", show_default=True)
+@click.option(
+    "--parametrization",
+    type=click.Choice(["bspline", "waypoints"]),
+    default=None,
+    help="the model's own for a checkpoint path or an identity; bspline for 'latest' and 'default'",
+)
 @click.option(
     "--model",
     "model_ref",
@@ -136,6 +141,8 @@ def plan(
     model = None
     if cls.model_kind is not None:
         model = find_model(task, cls.model_kind, parametrization, model_ref, device=device)
+        parametrization = model.parametrization
+    parametrization = parametrization or "bspline"
     planner = make_planner(
         planner_name,
         task,
@@ -203,6 +210,7 @@ def plan(
         "extra_objects": extra_objects,
         "rotation_deg": rotation,
         "model": str(model.path) if model else None,
+        "parametrization": parametrization,
         "settings": planner.settings.__dict__,
         "mean": mean,
         "contexts": summary,
@@ -215,7 +223,7 @@ def plan(
     )
 
 
-def find_model(task, kind: str, parametrization: str, ref: str, device=None):
+def find_model(task, kind: str, parametrization: str | None, ref: str, device=None):
     """A trained model: a checkpoint path, a model identity (or its prefix; the cache, then the shipped priors),
     'latest' (the newest of the cache, else the default shipped prior) or 'default' (the default shipped prior)."""
     from mpd.models.find import find_model as find

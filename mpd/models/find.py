@@ -37,17 +37,33 @@ def shipped_priors(task_name: str, kind: str, parametrization: str) -> list[dict
     return sorted(locks, key=lambda e: (_samples(e), str(e.get("shipped", ""))), reverse=True)
 
 
-def resolve_model(task_name: str, kind: str, parametrization: str, ref: str | Path | None = None) -> tuple[Path, str]:
+PARAMETRIZATIONS = ("bspline", "waypoints")
+
+
+def resolve_model(
+    task_name: str, kind: str, parametrization: str | None, ref: str | Path | None = None
+) -> tuple[Path, str]:
     """(checkpoint path, source) of the model ``ref`` names; source is "path", "cache" or "shipped".
 
     ``ref``: None or ``"default"`` (the default shipped prior), ``"latest"`` (the newest model of the cache, else the
     default shipped prior), a checkpoint path, or a model identity or a prefix of one (the cache first, then the
-    shipped priors). Raises :class:`ConfigError` naming what was looked for."""
+    shipped priors). ``parametrization`` None: any, for a path or an identity (the model's own), ``"bspline"`` for
+    ``"default"`` and ``"latest"``. Raises :class:`ConfigError` naming what was looked for."""
     ref = DEFAULT if ref is None else ref
-    what = f"{kind} model with the {parametrization} parametrization for {task_name}"
-    hint = f"train one: mpd train --task {task_name} --model {kind} --parametrization {parametrization}"
     if isinstance(ref, Path) or (ref not in (DEFAULT, LATEST) and Path(ref).exists()):
         return Path(ref), "path"
+    if parametrization is None:
+        if ref in (DEFAULT, LATEST):
+            return resolve_model(task_name, kind, "bspline", ref)
+        errors = []
+        for p in PARAMETRIZATIONS:
+            try:
+                return resolve_model(task_name, kind, p, ref)
+            except ConfigError as e:
+                errors.append(e.detail)
+        raise ConfigError("model", "", "; ".join(dict.fromkeys(errors)))  # each parametrization's reason, once
+    what = f"{kind} model with the {parametrization} parametrization for {task_name}"
+    hint = f"train one: mpd train --task {task_name} --model {kind} --parametrization {parametrization}"
     ref = str(ref)
     shipped = shipped_priors(task_name, kind, parametrization)
     if ref == DEFAULT:
@@ -79,10 +95,10 @@ def resolve_model(task_name: str, kind: str, parametrization: str, ref: str | Pa
 
 
 def find_model(
-    task_name: str, kind: str, parametrization: str, ref: str | Path | None = None, device=None
+    task_name: str, kind: str, parametrization: str | None, ref: str | Path | None = None, device=None
 ) -> LoadedModel:
     """The model ``ref`` names (:func:`resolve_model`), loaded for sampling and checked against the task and the
-    parametrization."""
+    parametrization (None: the model's own, see :func:`resolve_model`)."""
     path, source = resolve_model(task_name, kind, parametrization, ref)
     model = load_model(path, expect_task=task_name, expect_parametrization=parametrization, device=device)
     if model.kind != kind:
@@ -91,4 +107,4 @@ def find_model(
     return model
 
 
-__all__ = ["DEFAULT", "LATEST", "find_model", "resolve_model", "shipped_priors"]
+__all__ = ["DEFAULT", "LATEST", "PARAMETRIZATIONS", "find_model", "resolve_model", "shipped_priors"]
