@@ -172,7 +172,8 @@ class MotionPlanner:
 
     def __repr__(self) -> str:
         model = "" if self.model is None else f", model {self.model.meta.get('identity')}"
-        return f"MotionPlanner({self.method} on {self.task.name}{model})"
+        param = "" if self.parametrization == "bspline" else f", {self.parametrization}"
+        return f"MotionPlanner({self.method} on {self.task.name}{model}{param})"
 
     # -- inputs --------------------------------------------------------------------------------------------------
     def _obstacles(self, obstacles) -> list[Primitive]:
@@ -400,6 +401,7 @@ class MotionPlanner:
             "model_identity": None if m is None else m.meta.get("identity"),
             "model_source": None if m is None else m.meta.get("source"),
             "model_file": None if m is None else str(m.path),
+            "parametrization": self.parametrization,
             "extra_objects": self._extra_objects,
             "rotation_deg": self._rotation_deg,
             "obstacles": len(env.obstacles),

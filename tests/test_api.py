@@ -51,7 +51,9 @@ def test_a_named_model_brings_its_own_parametrization():
         p = mpd.load_planner(TASK, "dprior", model=ref, fast=False)
         assert p.parametrization == p.model.parametrization == "waypoints"
         assert p.model.meta["identity"] == wp["identity"]
-        assert np.asarray(p.plan(START, GOAL, n_samples=4, seed=0).q).shape[0] == 4
+        plan = p.plan(START, GOAL, n_samples=4, seed=0)
+        assert np.asarray(plan.q).shape[0] == 4 and plan.provenance["parametrization"] == "waypoints"
+        assert repr(p).endswith(", waypoints)")
     assert mpd.load_planner(TASK, "dprior", fast=False).parametrization == "bspline"
     with pytest.raises(mpd.PlanningInputError, match=r"^model: .*checkpoint is for parametrization 'waypoints'"):
         mpd.load_planner(TASK, "dprior", model=wp["path"], parametrization="bspline")
