@@ -467,8 +467,10 @@ def load_planner(
     unknown = sorted(set(settings) - known)
     if unknown:
         raise PlanningInputError(unknown[0], f"is not a planner setting (known: {', '.join(sorted(known))})")
-    if parametrization not in (None, "bspline", "waypoints"):
-        raise PlanningInputError("parametrization", f"{parametrization!r} is not bspline or waypoints")
+    from mpd.trajectory import PARAMETRIZATIONS
+
+    if parametrization is not None and parametrization not in PARAMETRIZATIONS:
+        raise PlanningInputError("parametrization", f"{parametrization!r} is not {' or '.join(PARAMETRIZATIONS)}")
     loaded = None
     if cls.model_kind is not None:
         try:

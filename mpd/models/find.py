@@ -15,6 +15,7 @@ from mpd.models.checkpoint import LoadedModel, load_model
 from mpd.models.shipped import list_shipped
 from mpd.models.train import list_models
 from mpd.schema import ConfigError
+from mpd.trajectory import PARAMETRIZATIONS
 
 # refs that name no particular model
 DEFAULT = "default"  # the default shipped prior
@@ -35,9 +36,6 @@ def shipped_priors(task_name: str, kind: str, parametrization: str) -> list[dict
         if e.get("parametrization") == parametrization
     ]
     return sorted(locks, key=lambda e: (_samples(e), str(e.get("shipped", ""))), reverse=True)
-
-
-PARAMETRIZATIONS = ("bspline", "waypoints")
 
 
 def resolve_model(
@@ -107,4 +105,4 @@ def find_model(
     return model
 
 
-__all__ = ["DEFAULT", "LATEST", "PARAMETRIZATIONS", "find_model", "resolve_model", "shipped_priors"]
+__all__ = ["DEFAULT", "LATEST", "find_model", "resolve_model", "shipped_priors"]
