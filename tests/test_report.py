@@ -194,6 +194,27 @@ def test_every_figure_kind_is_made(prepared, kind, tmp_path):
         assert (tmp_path / f"{kind.name}.pdf").read_bytes()[:4] == b"%PDF"
 
 
+def test_a_caption_longer_than_a_narrow_figure_wraps_instead_of_widening_it():
+    """A one-panel figure under a long caption (spec, hash, commit, run folder): the saved area keeps the figure's
+    width, and the caption's words are all there, in order."""
+    from matplotlib.figure import Figure
+
+    cap = (
+        "spec bspline-vs-waypoints-simple-authors (8327391fa965) · commit 8b3e5d85a8 · "
+        "run bspline-vs-waypoints-simple-authors-8327391f-8b3e5d85"
+    )
+    fig = Figure(figsize=(3.0, 2.5), layout="constrained")
+    fig.subplots().plot([0, 1], [0, 1])
+    rf.add_caption(fig, cap)
+    text = fig.texts[-1].get_text()
+    assert text.count("\n") >= 1 and text.replace("\n", " ") == cap
+    assert fig._mpd_bbox.width < 3.0 + 0.2  # unwrapped, this caption is ~5.5 in wide at 6.5 pt
+    wide = Figure(figsize=(9.0, 2.5), layout="constrained")
+    wide.subplots().plot([0, 1], [0, 1])
+    rf.add_caption(wide, cap)
+    assert wide.texts[-1].get_text() == cap  # a wide figure keeps it on one line
+
+
 def test_figures_skip_cleanly_without_their_cells(prepared):
     only_main = prepared[(prepared.rotation_deg == 0) & (prepared.parametrization == "bspline")]
     only_main = only_main[only_main.task != SPHERES]

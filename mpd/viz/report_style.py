@@ -7,6 +7,8 @@ the scene figures); the cross marks the mean, as in the paper.
 
 from __future__ import annotations
 
+import textwrap
+
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
@@ -69,7 +71,13 @@ def add_caption(fig: Figure, caption: str) -> None:
             color="0.4",
             linespacing=1.3,
         )
-        tb = text.get_window_extent(fig._get_renderer()).transformed(fig.dpi_scale_trans.inverted())
+        renderer = fig._get_renderer()
+        tb = text.get_window_extent(renderer).transformed(fig.dpi_scale_trans.inverted())
+        if tb.width > bb.width:  # a narrow figure: wrap the caption to the figure's width instead of widening it
+            chars = max(len(t) for t in lines)
+            width = max(30, int(chars * bb.width / tb.width))
+            text.set_text("\n".join(textwrap.fill(t, width, break_on_hyphens=False) for t in lines))
+            tb = text.get_window_extent(renderer).transformed(fig.dpi_scale_trans.inverted())
     # the saved area, caption included: saving with it skips the extra draw that bbox_inches="tight" costs
     fig._mpd_bbox = Bbox.union([bb, tb]).padded(0.05)
 
