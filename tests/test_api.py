@@ -46,7 +46,7 @@ def test_a_named_model_brings_its_own_parametrization():
     fails in one line naming the argument."""
     from mpd.models.find import shipped_priors
 
-    (wp,) = shipped_priors(TASK, "diffusion", "waypoints")
+    wp = shipped_priors(TASK, "diffusion", "waypoints")[0]  # the default: trained on the most samples
     for ref in (wp["path"], wp["identity"][:8]):
         p = mpd.load_planner(TASK, "dprior", model=ref, fast=False)
         assert p.parametrization == p.model.parametrization == "waypoints"

@@ -194,7 +194,7 @@ def test_plan_cli_takes_the_named_models_parametrization(tmp_path):
 
     from mpd.models.find import shipped_priors
 
-    (wp,) = shipped_priors("EnvSimple2D-RobotPointMass2D", "diffusion", "waypoints")
+    wp = shipped_priors("EnvSimple2D-RobotPointMass2D", "diffusion", "waypoints")[0]  # the default
     args = ["--task", "EnvSimple2D-RobotPointMass2D", "--planner", "dprior", "--model", wp["identity"][:8]]
     r = _plan_cli(*args, "--n-samples", "4", "--out", str(tmp_path / "wp"))
     assert r.returncode == 0, r.stderr
