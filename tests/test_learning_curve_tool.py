@@ -55,6 +55,23 @@ def test_the_tables_and_the_paired_difference_match_hand_computations(tmp_path, 
     assert capsys.readouterr().out == out
 
 
+def test_a_cvae_training_gives_its_own_columns(tmp_path, capsys, bench_tool):
+    """A CVAE's evaluations (``--method cvae`` / ``cvae-cost``) are read as CVAE and CVAE+Cost, not refused or merged
+    into Dprior's column."""
+    rng = np.random.default_rng(5)
+    alone, cost = rng.uniform(size=(8, 10)) < 0.3, rng.uniform(size=(8, 10)) < 0.6
+    _evaluation(tmp_path / "cv-5000-cvae.parquet", alone)
+    _evaluation(tmp_path / "cv-5000-cvae-cost-extra.parquet", cost)
+    tool = bench_tool("learning_curve")
+    df = tool.load(sorted(tmp_path.glob("*.parquet")))
+    assert set(zip(df.method, df.scene)) == {("cvae", "training"), ("cvae-cost", "extra objects")}
+    tool.main([str(p) for p in sorted(tmp_path.glob("*.parquet"))])
+    out = capsys.readouterr().out
+    (head,) = [line for line in out.splitlines() if line.startswith("| prior |")]
+    assert head == "| prior | steps | CVAE, training | CVAE+Cost, extra objects |"  # no MPD - Dprior+Cost column
+    assert f"| cv | 5000 | {100 * alone.mean():.1f} [" in out
+
+
 def test_a_file_named_otherwise_is_refused_by_name(tmp_path, bench_tool):
     bad = tmp_path / "run-dprior.parquet"
     _evaluation(bad, np.ones((2, 2)))

@@ -1,7 +1,7 @@
 """A prior's learning curve as tables: snapshots of one training (copies of its ``last.pt``) evaluated by
-``prior_misses.py`` (Dprior, Dprior+Cost and MPD, the training scene and the extra objects, the task's evaluation
-contexts), one row per snapshot, with 95 % intervals over the contexts and the paper's adaptation comparison
-(MPD - Dprior+Cost with the extra objects, paired over the contexts).
+``prior_misses.py`` (Dprior, Dprior+Cost and MPD, or a CVAE's CVAE and CVAE+Cost; the training scene and the extra
+objects, the task's evaluation contexts), one row per snapshot, with 95 % intervals over the contexts and the paper's
+adaptation comparison (MPD - Dprior+Cost with the extra objects, paired over the contexts).
 
 Files are named ``<label>-<steps>-<method>[-extra].parquet`` (e.g. ``authors-40000-mpd-extra.parquet``), as
 ``prior_misses.py --out`` writes them:
@@ -23,8 +23,10 @@ import pandas as pd
 
 from mpd.stats import bootstrap, paired, rate
 
-NAME = re.compile(r"(?P<label>.+?)-(?P<steps>\d+)-(?P<method>dprior-cost|dprior|mpd)(?P<extra>-extra)?\.parquet$")
-METHODS = {"dprior": "Dprior", "dprior-cost": "Dprior+Cost", "mpd": "MPD"}
+NAME = re.compile(
+    r"(?P<label>.+?)-(?P<steps>\d+)-(?P<method>dprior-cost|dprior|cvae-cost|cvae|mpd)(?P<extra>-extra)?\.parquet$"
+)
+METHODS = {"cvae": "CVAE", "cvae-cost": "CVAE+Cost", "dprior": "Dprior", "dprior-cost": "Dprior+Cost", "mpd": "MPD"}
 
 
 def load(files: list[Path]) -> pd.DataFrame:
@@ -59,14 +61,16 @@ def _cell(g: pd.DataFrame) -> str:
 
 def table(df: pd.DataFrame) -> str:
     """Markdown: a row per (label, steps), a column per (scene, method): fraction valid % [95 % CI] / success %,
-    and MPD - Dprior+Cost with the extra objects (pp, paired bootstrap 95 %)."""
+    and MPD - Dprior+Cost with the extra objects (pp, paired bootstrap 95 %) when both were evaluated."""
     cols = [
         (sc, me)
         for sc in ("training", "extra objects")
         for me in METHODS
         if ((df.scene == sc) & (df.method == me)).any()
     ]
-    head = ["prior", "steps", *(f"{METHODS[me]}, {sc}" for sc, me in cols), "MPD − Dprior+Cost, extra objects (pp)"]
+    adaptation = {("extra objects", "mpd"), ("extra objects", "dprior-cost")} <= set(cols)
+    head = ["prior", "steps", *(f"{METHODS[me]}, {sc}" for sc, me in cols)]
+    head += ["MPD − Dprior+Cost, extra objects (pp)"] if adaptation else []
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for (label, steps), g in df.groupby(["label", "steps"], sort=True):
         cells = []
@@ -80,7 +84,7 @@ def table(df: pd.DataFrame) -> str:
             common = a.index.intersection(b.index)
             d = paired(a[common].to_numpy(), b[common].to_numpy()).difference
             diff = f"{100 * d.value:+.1f} [{100 * d.lo:+.1f}, {100 * d.hi:+.1f}]"
-        lines.append("| " + " | ".join([label, str(steps), *cells, diff]) + " |")
+        lines.append("| " + " | ".join([label, str(steps), *cells, *([diff] if adaptation else [])]) + " |")
     return "\n".join(lines)
 
 
