@@ -1,7 +1,8 @@
 """Sec. V-F's table: per scene and method, the B-spline prior's and the waypoint prior's means over the contexts
-(success, fraction valid, Vendi, smoothness and path length of the valid samples, planning time) and waypoints -
-B-spline paired over the contexts (mean [95 % interval], bootstrap over contexts; a metric undefined in a context,
-e.g. Vendi without two valid samples, drops that context from its pair).
+(the metrics of every report's summary table that the run has: success, fraction valid, Vendi, smoothness and
+path length of the valid samples, planning time) and waypoints - B-spline paired over the contexts (mean [95 %
+interval], bootstrap over contexts; a metric undefined in a context, e.g. Vendi without two valid samples, drops that
+context from its pair).
 
 Run (from the repository root, with PYTHONPATH=.):
     python reports/bspline-vs-waypoints-simple-authors/paired.py \\
@@ -13,16 +14,11 @@ import sys
 import pandas as pd
 
 from mpd.stats import paired
+from mpd.viz.report_data import SUMMARY  # (column, header, scale, format) of every report's summary table
 
-METRICS = [  # column, label, scale, format
-    ("success", "success %", 100, ".0f"),
-    ("fraction_valid", "valid %", 100, ".1f"),
-    ("vendi", "Vendi", 1, ".2f"),
-    ("smoothness", "smoothness", 1, ".2f"),
-    ("path_length", "path length", 1, ".3f"),
-    ("time_total", "time s", 1, ".3f"),
-]
 d = pd.read_parquet(sys.argv[1])
+# the summary's metrics this run has (a joint-goal task's EE errors are 0 throughout); "{:.1f}" -> ".1f"
+METRICS = [(col, head, k, fmt[2:-1]) for col, head, k, fmt in SUMMARY if d[col].fillna(0).ne(0).any()]
 print("| scene | method | contexts | metric | B-spline | waypoints | waypoints − B-spline |")
 print("|" + "---|" * 7)
 for (extra, _order), g in d.groupby(["extra_objects", d["method"].map({"dprior": 0, "dprior-cost": 1, "mpd": 2})]):
